@@ -1,0 +1,327 @@
+r"""Newton's method for the small dense systems of implicit one-step methods.
+
+Every implicit step of this library (Gauss–Legendre stages, Galerkin nodes, Lie-group
+increments) reduces to a root-finding problem :math:`F(y; a) = 0` with 2 to ~12 unknowns.
+:func:`newton_solve` solves it with Newton's method
+
+.. math::  y_{i+1} = y_i - J(y_i)^{-1} F(y_i), \qquad J = \partial F / \partial y,
+
+where the Jacobian comes from forward-mode autodiff (``jax.jacfwd``) and the linear system
+from an unrolled Gaussian elimination with partial pivoting (:func:`small_solve`), which XLA
+fuses into a handful of vector operations instead of a LAPACK call.
+
+**Convergence.** The iteration stops successfully when the Newton update is small,
+``max_i |Δy_i| / (atol + rtol |y_i|) <= 1``. Newton converges quadratically, so an update of
+size ``1e-12`` means the iterate is already at round-off level. It stops with a failure code
+when the update or the residual stops being finite (:attr:`RESULTS.nonfinite`) or after
+``max_steps`` iterations (:attr:`RESULTS.max_steps_reached`). Failure is a value:
+:class:`NewtonSolution` carries the code, the number of iterations and the residual; with
+``throw=True`` a failure raises :class:`NewtonError` (eagerly) or an ``EquinoxRuntimeError``
+(under ``jit``).
+
+**Differentiation.** The solution map :math:`a \mapsto y^*(a)` is differentiated by the
+implicit function theorem, not by unrolling the iterations:
+
+.. math::  \frac{\partial y^*}{\partial a} = -J(y^*)^{-1} \frac{\partial F}{\partial a}(y^*; a).
+
+This is a ``jax.custom_jvp`` rule, so forward mode (``jvp``) works directly and reverse mode
+(``grad``) works by JAX's transposition of the (linear) tangent solve. Only the arguments
+passed through ``args`` are differentiated: ``fn`` must not close over traced values.
+
+References: C. T. Kelley, *Solving Nonlinear Equations with Newton's Method*, SIAM 2003;
+the implicit-function-theorem adjoint as in optimistix (``ImplicitAdjoint``).
+"""
+
+from __future__ import annotations
+
+import enum
+import functools
+from collections.abc import Callable
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.flatten_util import ravel_pytree
+
+__all__ = [
+    "RESULTS",
+    "Newton",
+    "NewtonError",
+    "NewtonSolution",
+    "newton_solve",
+    "small_solve",
+]
+
+
+class RESULTS(enum.IntEnum):
+    """Result codes of a solve (and of a rollout, which reports its first failure)."""
+
+    successful = 0
+    max_steps_reached = 1
+    nonfinite = 2
+
+    @property
+    def message(self) -> str:
+        return _MESSAGES[self]
+
+    @classmethod
+    def describe(cls, code: int) -> str:
+        """Human-readable message for an integer result code."""
+        try:
+            return cls(int(code)).message
+        except ValueError:
+            return f"unknown result code {int(code)}"
+
+
+_MESSAGES = {
+    RESULTS.successful: "converged",
+    RESULTS.max_steps_reached: "Newton's method did not converge within the iteration cap",
+    RESULTS.nonfinite: "non-finite values (NaN or inf) in the state or the Newton iteration",
+}
+
+
+class NewtonError(RuntimeError):
+    """Raised by ``throw=True`` when a Newton solve (or a step of a rollout) fails."""
+
+
+class Newton(eqx.Module):
+    """Newton's method with an autodiff Jacobian.
+
+    Attributes:
+        rtol, atol: the iteration has converged when every component of the last update
+            satisfies ``|Δy_i| <= atol + rtol |y_i|``.
+        max_steps: iteration cap (each iteration = one residual, one Jacobian, one solve).
+        chord: if True, the Jacobian is computed and factorised once, at the initial guess
+            (the chord or simplified Newton method): cheaper iterations, linear convergence.
+        linear_solver: ``"unrolled"`` (:func:`small_solve`, default) or ``"lu"``
+            (``jnp.linalg.solve``, LAPACK); see ``experiments/bench_newton.py``.
+    """
+
+    rtol: float = 1e-12
+    atol: float = 1e-12
+    max_steps: int = eqx.field(static=True, default=20)
+    chord: bool = eqx.field(static=True, default=False)
+    linear_solver: str = eqx.field(static=True, default="unrolled")
+
+    def __check_init__(self):
+        if self.linear_solver not in _LINEAR_SOLVERS:
+            raise ValueError(
+                f"Newton: linear_solver must be one of {sorted(_LINEAR_SOLVERS)}, "
+                f"got {self.linear_solver!r}"
+            )
+        for name in ("rtol", "atol"):
+            value = getattr(self, name)
+            if not isinstance(value, (float, int)) or not np.isfinite(value) or value < 0:
+                raise ValueError(f"Newton: {name} must be a finite number >= 0, got {value!r}")
+        if self.rtol == 0 and self.atol == 0:
+            raise ValueError("Newton: rtol and atol cannot both be 0")
+        if not isinstance(self.max_steps, int) or self.max_steps < 1:
+            raise ValueError(f"Newton: max_steps must be an integer >= 1, got {self.max_steps!r}")
+
+
+class NewtonSolution(eqx.Module):
+    """Outcome of :func:`newton_solve`.
+
+    Attributes:
+        value: the last iterate (the root when ``result == RESULTS.successful``).
+        result: ``int32`` result code, see :class:`RESULTS`.
+        num_steps: Newton iterations taken.
+        residual: max-norm of the residual at the last iterate where it was evaluated.
+    """
+
+    value: Any
+    result: jax.Array
+    num_steps: jax.Array
+    residual: jax.Array
+
+    @property
+    def ok(self) -> jax.Array:
+        return self.result == RESULTS.successful
+
+
+# ---------------------------------------------------------------------------------------
+# Linear algebra for tiny systems
+# ---------------------------------------------------------------------------------------
+
+_UNROLL_MAX = 8  # measured crossover with LAPACK LU (experiments/bench_newton.py)
+
+
+def small_solve(A: jax.Array, b: jax.Array) -> jax.Array:
+    """Solve ``A x = b`` for a small square ``A`` (n <= 8: unrolled elimination).
+
+    Gaussian elimination with partial pivoting, unrolled at trace time over the static size
+    ``n``, so that XLA sees a few fused vector operations (and batches them under ``vmap``)
+    instead of a LAPACK call. Larger systems fall back to ``jnp.linalg.solve``. A singular
+    ``A`` gives non-finite entries, which :func:`newton_solve` reports as
+    :attr:`RESULTS.nonfinite`. Linear in ``b``, so it can be transposed (reverse mode).
+    """
+    n = A.shape[-1]
+    if A.shape != (n, n) or b.shape != (n,):
+        raise ValueError(f"small_solve: expected A (n, n) and b (n,), got {A.shape}, {b.shape}")
+    if n > _UNROLL_MAX:
+        return jnp.linalg.solve(A, b)
+    rows = jnp.arange(n)
+    for k in range(n - 1):
+        p = k + jnp.argmax(jnp.abs(A[k:, k]))
+        perm = rows.at[k].set(p).at[p].set(k)
+        A = A[perm]
+        b = b[perm]
+        factors = A[k + 1 :, k] / A[k, k]
+        A = A.at[k + 1 :, k:].add(-factors[:, None] * A[k, k:])
+        b = b.at[k + 1 :].add(-factors * b[k])
+    x = [None] * n
+    for k in reversed(range(n)):
+        acc = b[k]
+        for j in range(k + 1, n):
+            acc = acc - A[k, j] * x[j]
+        x[k] = acc / A[k, k]
+    return jnp.stack(x)
+
+
+_LINEAR_SOLVERS = {"unrolled": small_solve, "lu": jnp.linalg.solve}
+
+
+# ---------------------------------------------------------------------------------------
+# Newton iteration
+# ---------------------------------------------------------------------------------------
+
+
+def _residual_and_jacobian(f, y):
+    # One forward pass gives both F(y) (as auxiliary output) and the Jacobian.
+    return jax.jacfwd(lambda z: (f(z), f(z)), has_aux=True)(y)
+
+
+def _iterate(f, y0, solver: Newton):
+    """Run the Newton iteration on a flat ``f: R^n -> R^n``. Returns (y, result, steps, res)."""
+    dtype = y0.dtype
+    zero = jnp.asarray(0, jnp.int32)
+    solve = _LINEAR_SOLVERS[solver.linear_solver]
+
+    if solver.chord:
+        J0, _ = _residual_and_jacobian(f, y0)
+        J0 = jnp.asarray(J0, dtype)
+
+    def body(carry):
+        y, k, _, _ = carry
+        if solver.chord:
+            F = f(y)
+            J = J0
+        else:
+            J, F = _residual_and_jacobian(f, y)
+        delta = -solve(J, F)
+        y_new = y + delta
+        res = jnp.max(jnp.abs(F), initial=0.0)
+        finite = jnp.all(jnp.isfinite(delta)) & jnp.isfinite(res)
+        scale = solver.atol + solver.rtol * jnp.abs(y_new)
+        converged = jnp.max(jnp.abs(delta) / scale, initial=0.0) <= 1.0
+        k = k + 1
+        result = jnp.where(
+            ~finite,
+            RESULTS.nonfinite,
+            jnp.where(
+                converged,
+                RESULTS.successful,
+                jnp.where(k >= solver.max_steps, RESULTS.max_steps_reached, -1),
+            ),
+        ).astype(jnp.int32)
+        # A non-finite update is not applied: the last finite iterate is returned.
+        y_new = jnp.where(finite, y_new, y)
+        return y_new, k, result, res
+
+    def cond(carry):
+        return carry[2] < 0
+
+    init = (y0, zero, jnp.asarray(-1, jnp.int32), jnp.asarray(jnp.inf, dtype))
+    y, k, result, res = jax.lax.while_loop(cond, body, init)
+    return y, result, k, res
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0, 1))
+def _newton_core(fn, solver, y0, args):
+    f = functools.partial(fn, args=args)
+    return _iterate(f, y0, solver)
+
+
+@_newton_core.defjvp
+def _newton_core_jvp(fn, solver, primals, tangents):
+    y0, args = primals
+    _, args_dot = tangents
+    y, result, k, res = _newton_core(fn, solver, y0, args)
+    # Implicit function theorem at the solution: J dy = -dF/da . da
+    J = jax.jacfwd(lambda z: fn(z, args))(y)
+    _, dF = jax.jvp(lambda a: fn(y, a), (args,), (args_dot,))
+    y_dot = -small_solve(J, dF)
+    float0 = jax.dtypes.float0
+    return (y, result, k, res), (
+        y_dot,
+        np.zeros(result.shape, float0),
+        np.zeros(k.shape, float0),
+        jnp.zeros_like(res),
+    )
+
+
+def newton_solve(
+    fn: Callable[[Any, Any], Any],
+    y0: Any,
+    args: Any = None,
+    solver: Newton | None = None,
+    *,
+    throw: bool = False,
+) -> NewtonSolution:
+    """Solve ``fn(y, args) = 0`` for ``y`` by Newton's method, starting from ``y0``.
+
+    Args:
+        fn: residual function ``fn(y, args)`` returning a pytree with the same structure and
+            shapes as ``y``. Everything it depends on that may be traced (parameters, states)
+            must come in through ``args``; only ``args`` is differentiated.
+        y0: initial guess (a pytree of float arrays; flattened internally).
+        args: pytree of arguments, differentiated by the implicit function theorem.
+        solver: :class:`Newton` settings (default ``Newton()``).
+        throw: if True, a failed solve raises :class:`NewtonError` (or, under ``jit``, an
+            ``EquinoxRuntimeError``) instead of only returning the failure code.
+
+    Returns:
+        :class:`NewtonSolution` with the root, the result code, iterations and residual.
+    """
+    solver = Newton() if solver is None else solver
+    y0_flat, unravel = ravel_pytree(y0)
+    if y0_flat.size == 0:
+        raise ValueError("newton_solve: y0 has no unknowns")
+    if not jnp.issubdtype(y0_flat.dtype, jnp.floating):
+        raise ValueError(f"newton_solve: y0 must be floating point, got {y0_flat.dtype}")
+
+    def flat_fn(y_flat, args):
+        out = fn(unravel(y_flat), args)
+        out_flat, _ = ravel_pytree(out)
+        if out_flat.shape != y_flat.shape:
+            raise ValueError(
+                "newton_solve: fn(y, args) must return as many residuals as unknowns, got "
+                f"{out_flat.shape[0]} residuals for {y_flat.shape[0]} unknowns"
+            )
+        return out_flat
+
+    y, result, k, res = _newton_core(flat_fn, solver, y0_flat, args)
+    sol = NewtonSolution(value=unravel(y), result=result, num_steps=k, residual=res)
+    if throw:
+        sol = raise_if_failed(sol)
+    return sol
+
+
+def raise_if_failed(sol: NewtonSolution) -> NewtonSolution:
+    """Raise if ``sol`` failed: :class:`NewtonError` with the numbers when they are concrete,
+    an ``EquinoxRuntimeError`` under ``jit`` (where only a fixed message is possible)."""
+    if isinstance(sol.result, jax.core.Tracer):
+        # Attached to every output, so the check survives whichever output the caller uses.
+        return eqx.error_if(
+            sol, jnp.any(sol.result != RESULTS.successful), "Newton solve failed (throw=True)"
+        )
+    code = int(np.max(np.asarray(sol.result)))
+    if code != RESULTS.successful:
+        raise NewtonError(
+            f"Newton solve failed: {RESULTS.describe(code)} "
+            f"(iterations {int(np.max(np.asarray(sol.num_steps)))}, "
+            f"residual {float(np.max(np.asarray(sol.residual))):.3e})"
+        )
+    return sol

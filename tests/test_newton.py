@@ -1,0 +1,194 @@
+"""Newton solver: convergence, result codes, errors, implicit differentiation."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import lgvi_jax  # noqa: F401  (float64)
+from lgvi_jax.newton import (
+    RESULTS,
+    Newton,
+    NewtonError,
+    newton_solve,
+    raise_if_failed,
+    small_solve,
+)
+
+
+def cubic(y, a):
+    """Roots y_i = a_i^(1/3); Jacobian diag(3 y^2)."""
+    return y**3 - a
+
+
+def coupled(y, args):
+    """A nonlinear 3x3 system with known root (1, 2, 3) when args = (1, 2, 3)."""
+    x, yy, z = y
+    a, b, c = args
+    return jnp.stack([x**2 + yy - a**2 - b, yy * z - b * c, jnp.sin(z) + x - jnp.sin(c) - a])
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 4, 6, 9, 12, 15])
+def test_small_solve_matches_numpy(n):
+    rng = np.random.default_rng(n)
+    for _ in range(5):
+        A = rng.normal(size=(n, n))
+        b = rng.normal(size=n)
+        x = jax.jit(small_solve)(jnp.asarray(A), jnp.asarray(b))
+        np.testing.assert_allclose(A @ np.asarray(x), b, rtol=0, atol=1e-12 * np.linalg.cond(A))
+
+
+def test_small_solve_needs_pivoting():
+    # A zero leading entry: elimination without row exchanges would divide by zero.
+    A = jnp.array([[0.0, 1.0, 2.0], [1.0, 0.0, 3.0], [4.0, -3.0, 8.0]])
+    b = jnp.array([1.0, 2.0, 3.0])
+    np.testing.assert_allclose(np.asarray(A @ small_solve(A, b)), np.asarray(b), atol=1e-14)
+
+
+def test_small_solve_singular_is_nonfinite():
+    A = jnp.array([[1.0, 2.0], [2.0, 4.0]])
+    x = small_solve(A, jnp.array([1.0, 1.0]))
+    assert not np.all(np.isfinite(np.asarray(x)))
+
+
+def test_converges_quadratically_to_root():
+    a = jnp.array([2.0, 27.0, 0.5])
+    sol = newton_solve(cubic, jnp.ones(3), a)
+    assert int(sol.result) == RESULTS.successful
+    np.testing.assert_allclose(np.asarray(sol.value), np.cbrt([2.0, 27.0, 0.5]), rtol=1e-15)
+    # From 1 to 3 (root of 27) Newton needs a handful of steps; a linearly convergent method
+    # would need dozens at this tolerance.
+    assert int(sol.num_steps) <= 9
+
+
+def test_quadratic_convergence_rate():
+    # Track errors per iteration by capping max_steps: e_{k+1} ~ C e_k^2.
+    errors = []
+    for k in range(1, 6):
+        sol = newton_solve(cubic, jnp.array([1.0]), jnp.array([2.0]), Newton(max_steps=k))
+        errors.append(abs(float(sol.value[0]) - np.cbrt(2.0)))
+    errors = [e for e in errors if e > 1e-15]
+    ratios = [errors[i + 1] / errors[i] ** 2 for i in range(len(errors) - 1)]
+    assert len(ratios) >= 2
+    # For f = y^3 - a the constant is f''/(2 f') = 1/y* ~ 0.8: bounded, not growing.
+    assert max(ratios) < 2.0
+
+
+def test_pytree_unknowns_and_coupled_system():
+    sol = newton_solve(coupled, jnp.array([1.2, 1.7, 2.8]), jnp.array([1.0, 2.0, 3.0]))
+    assert int(sol.result) == RESULTS.successful
+    np.testing.assert_allclose(np.asarray(sol.value), [1.0, 2.0, 3.0], atol=1e-13)
+
+    def fn(y, args):
+        return {"u": y["u"] ** 2 - args, "v": y["v"] - y["u"]}
+
+    sol = newton_solve(fn, {"u": jnp.array(1.0), "v": jnp.array(0.0)}, jnp.array(4.0))
+    assert float(sol.value["u"]) == pytest.approx(2.0, rel=1e-15)
+    assert float(sol.value["v"]) == pytest.approx(2.0, rel=1e-15)
+
+
+def test_unsolvable_reports_max_steps():
+    # y^2 + 1 = 0 has no real root: Newton wanders forever.
+    sol = newton_solve(lambda y, a: y**2 + a, jnp.array([0.7]), jnp.array(1.0),
+                       Newton(max_steps=25))
+    assert int(sol.result) == RESULTS.max_steps_reached
+    assert int(sol.num_steps) == 25
+    assert float(sol.residual) >= 1.0  # |y^2 + 1| >= 1 everywhere
+    assert not bool(sol.ok)
+
+
+def test_nonfinite_is_reported():
+    # Starting at the critical point y = 0 of y^2 - 1 the Jacobian is singular.
+    sol = newton_solve(lambda y, a: y**2 - a, jnp.array([0.0]), jnp.array(1.0))
+    assert int(sol.result) == RESULTS.nonfinite
+    # NaN input
+    sol = newton_solve(cubic, jnp.array([jnp.nan]), jnp.array([1.0]))
+    assert int(sol.result) == RESULTS.nonfinite
+    assert int(sol.num_steps) == 1
+
+
+def test_throw_raises_with_numbers():
+    with pytest.raises(NewtonError, match=r"did not converge.*iterations 5.*residual"):
+        newton_solve(lambda y, a: y**2 + a, jnp.array([0.7]), jnp.array(1.0),
+                     Newton(max_steps=5), throw=True)
+    # A successful solve does not raise.
+    newton_solve(cubic, jnp.ones(2), jnp.array([2.0, 3.0]), throw=True)
+
+
+def test_throw_under_jit_raises_runtime_error():
+    @eqx.filter_jit
+    def solve(a):
+        return newton_solve(lambda y, a: y**2 + a, jnp.array([0.7]), a, Newton(max_steps=5),
+                            throw=True).value
+
+    with pytest.raises(Exception, match="Newton solve failed"):
+        jax.block_until_ready(solve(jnp.array(1.0)))
+
+
+def test_raise_if_failed_passes_success_through():
+    sol = newton_solve(cubic, jnp.ones(1), jnp.array([8.0]))
+    assert raise_if_failed(sol) is sol
+
+
+def test_chord_variant_converges_linearly():
+    a = jnp.array([2.0, 3.0])
+    full = newton_solve(cubic, jnp.array([1.2, 1.4]), a)
+    chord = newton_solve(cubic, jnp.array([1.2, 1.4]), a, Newton(chord=True, max_steps=100))
+    assert int(chord.result) == RESULTS.successful
+    np.testing.assert_allclose(np.asarray(chord.value), np.asarray(full.value), rtol=1e-12)
+    assert int(chord.num_steps) > int(full.num_steps)
+
+
+def test_implicit_gradient_matches_analytic():
+    # y*(a) = a^(1/3): dy/da = 1 / (3 y^2)
+    @jax.jit
+    def root(a):
+        return newton_solve(cubic, jnp.ones(2), a).value
+
+    a = jnp.array([2.0, 5.0])
+    expected = np.diag(1.0 / (3.0 * np.cbrt(np.asarray(a)) ** 2))
+    np.testing.assert_allclose(np.asarray(jax.jacrev(root)(a)), expected, rtol=1e-13)
+    np.testing.assert_allclose(np.asarray(jax.jacfwd(root)(a)), expected, rtol=1e-13)
+
+
+def test_implicit_gradient_matches_finite_differences():
+    @jax.jit
+    def loss(args):
+        y = newton_solve(coupled, jnp.array([1.2, 1.7, 2.8]), args).value
+        return jnp.sum(y**2) + y[0] * y[2]
+
+    args = jnp.array([1.0, 2.0, 3.0])
+    g = np.asarray(jax.grad(loss)(args))
+    eps = 1e-6
+    fd = [
+        (float(loss(args.at[i].add(eps))) - float(loss(args.at[i].add(-eps)))) / (2 * eps)
+        for i in range(3)
+    ]
+    # Central differences carry O(eps^2) truncation and O(1e-16/eps) round-off: ~1e-9.
+    np.testing.assert_allclose(g, fd, rtol=1e-7)
+
+
+def test_vmap_equals_loop():
+    batch = jnp.array([[2.0, 3.0], [5.0, 7.0], [0.1, 100.0]])
+
+    def solve(a):
+        sol = newton_solve(cubic, jnp.ones(2), a)
+        return sol.value, sol.num_steps
+
+    values, steps = jax.vmap(solve)(batch)
+    for i, a in enumerate(batch):
+        v, s = solve(a)
+        np.testing.assert_array_equal(np.asarray(values[i]), np.asarray(v))
+        assert int(steps[i]) == int(s)
+
+
+def test_bad_settings_rejected():
+    with pytest.raises(ValueError, match="rtol"):
+        Newton(rtol=-1.0)
+    with pytest.raises(ValueError, match="max_steps"):
+        Newton(max_steps=0)
+    with pytest.raises(ValueError, match="both be 0"):
+        Newton(rtol=0.0, atol=0.0)
+    with pytest.raises(ValueError, match="residuals"):
+        newton_solve(lambda y, a: jnp.concatenate([y, y]), jnp.ones(2), None)
