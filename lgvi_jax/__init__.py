@@ -2,14 +2,61 @@
 
 Importing the package switches JAX to 64-bit floats (``jax_enable_x64``): long-horizon
 energy and momentum checks are meaningless in float32.
+
+Layout: :mod:`lgvi_jax.so3` (Lie-group maths), :mod:`lgvi_jax.newton` (Newton solver),
+:mod:`lgvi_jax.models` (models defined by their energies), :mod:`lgvi_jax.integrators` (one
+file per method), :mod:`lgvi_jax.simulate` (rollouts), :mod:`lgvi_jax.diagnostics`,
+:mod:`lgvi_jax.plotting`, :mod:`lgvi_jax.scenes` and :mod:`lgvi_jax.cli`.
 """
 
 import jax
 
 jax.config.update("jax_enable_x64", True)
 
-from . import so3  # noqa: E402
+from . import diagnostics, so3  # noqa: E402
+from .integrators import (  # noqa: E402
+    EUCLIDEAN_METHODS,
+    RK4,
+    AbstractIntegrator,
+    GalerkinVI,
+    GaussLegendre,
+    StepInfo,
+    StormerVerlet,
+)
+from .models import AbstractEuclideanModel, HarmonicOscillator, PhaseState  # noqa: E402
+from .newton import RESULTS, Newton, NewtonError, NewtonSolution, newton_solve  # noqa: E402
+from .simulate import (  # noqa: E402
+    IntegrationError,
+    Trajectory,
+    final_state,
+    simulate,
+    simulate_timed,
+)
 
 __version__ = "0.1.0"
 
-__all__ = ["__version__", "so3"]
+__all__ = [
+    "EUCLIDEAN_METHODS",
+    "RESULTS",
+    "RK4",
+    "AbstractEuclideanModel",
+    "AbstractIntegrator",
+    "GalerkinVI",
+    "GaussLegendre",
+    "HarmonicOscillator",
+    "IntegrationError",
+    "Newton",
+    "NewtonError",
+    "NewtonSolution",
+    "PhaseState",
+    "StepInfo",
+    "StormerVerlet",
+    "Trajectory",
+    "__version__",
+    "diagnostics",
+    "final_state",
+    "newton_solve",
+    "simulate",
+    "simulate_timed",
+    "so3",
+]

@@ -1,0 +1,83 @@
+r"""Diagnostics: energy errors, observed orders, drift, and closed-form predictions.
+
+All functions take arrays (NumPy or JAX) and are usable on trajectories and in tests.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from .newton import RESULTS
+
+__all__ = [
+    "drift_ratio",
+    "observed_order",
+    "relative_energy_error",
+    "rk4_energy_factor",
+    "summarize",
+]
+
+
+def relative_energy_error(energy: Any) -> np.ndarray:
+    r"""``|E_n − E_0| / |E_0|`` along the last axis (absolute error when ``E_0 = 0``)."""
+    energy = np.asarray(energy, dtype=np.float64)
+    e0 = energy[..., :1]
+    scale = np.where(e0 == 0.0, 1.0, np.abs(e0))
+    return np.abs(energy - e0) / scale
+
+
+def observed_order(steps: Any, errors: Any) -> float:
+    r"""Least-squares slope of :math:`\log(\text{error})` against :math:`\log(h)`."""
+    h = np.asarray(steps, dtype=np.float64)
+    e = np.asarray(errors, dtype=np.float64)
+    if h.shape != e.shape or h.size < 2:
+        raise ValueError("observed_order: need at least two (step, error) pairs of equal length")
+    if np.any(h <= 0) or np.any(~np.isfinite(e)) or np.any(e <= 0):
+        raise ValueError("observed_order: steps and errors must be positive and finite")
+    slope, _ = np.polyfit(np.log(h), np.log(e), 1)
+    return float(slope)
+
+
+def drift_ratio(error: Any, fraction: float = 0.1) -> float:
+    """Max of ``error`` over the last ``fraction`` of the run divided by its max over the
+    first ``fraction``: about 1 for a bounded oscillating error, about ``1/fraction`` for a
+    linear drift."""
+    err = np.abs(np.asarray(error, dtype=np.float64))
+    n = max(1, round(fraction * err.shape[-1]))
+    first = np.max(err[..., 1 : n + 1], axis=-1)  # skip the initial state (error 0)
+    last = np.max(err[..., -n:], axis=-1)
+    return float(last / first) if np.ndim(last) == 0 else last / first
+
+
+def rk4_energy_factor(y: float, n_steps: int) -> float:
+    r"""Exact energy ratio :math:`E_n/E_0 = |R(iy)|^{2n}` of RK4 on a harmonic oscillator,
+    :math:`y = \omega h`, with :math:`|R(iy)|^2 = 1 - y^6/72 + y^8/576` (the stability
+    polynomial :math:`R(z) = 1 + z + z^2/2 + z^3/6 + z^4/24` on the imaginary axis).
+    """
+    r2 = 1.0 - y**6 / 72.0 + y**8 / 576.0
+    return float(np.exp(n_steps * np.log(r2)))
+
+
+def summarize(traj: Any) -> dict[str, Any]:
+    """Plain-Python summary of a (concrete, unbatched) :class:`~lgvi_jax.Trajectory`."""
+    err = relative_energy_error(traj.energy)
+    finite = np.isfinite(err)
+    code = int(np.asarray(traj.result))
+    out = {
+        "n_steps": int(traj.n_steps),
+        "dt": float(np.asarray(traj.dt)),
+        "saved": int(np.shape(traj.t)[0]),
+        "energy_error_max": float(np.max(err[finite])) if finite.any() else float("nan"),
+        "energy_error_final": float(err[-1]),
+        "result": code,
+        "result_name": RESULTS(code).name if code in RESULTS._value2member_map_ else str(code),
+        "message": traj.message,
+        "newton_iterations_mean": float(np.asarray(traj.newton_mean)),
+        "newton_iterations_max": int(np.asarray(traj.newton_max)),
+    }
+    if code != RESULTS.successful:
+        out["failed_step"] = int(np.asarray(traj.failed_step))
+        out["failed_residual"] = float(np.asarray(traj.failed_residual))
+    return out

@@ -1,0 +1,331 @@
+r"""Rollouts: ``simulate(model, method, state0, dt, n_steps, save_every=1)``.
+
+A rollout is a pure, ``jit``-compiled function built from two nested ``lax.scan`` loops: the
+inner one takes ``save_every`` steps, the outer one records the state, the energy and the
+model's invariants after each block. Memory therefore grows with the number of *saved*
+states only, and a 10^6-step run saving every 1000th state stores 1001 states.
+
+Failure is a value. Every step reports a result code (the Newton solve's, or
+:attr:`~lgvi_jax.newton.RESULTS.nonfinite` if the new state is not finite). The rollout keeps
+the first failure — its code, step index and residual — and from that step on the states are
+NaN, so a failed run can never be mistaken for a good one. ``throw=True`` turns a failure
+into an :class:`IntegrationError` naming the step, the time and the residual.
+
+``model``, ``method`` and ``state0`` are pytrees and ``dt`` is a traced scalar, so the
+rollout can be differentiated (``jax.grad``, ``jax.jvp``) and batched (``jax.vmap``) with
+respect to parameters, initial state and step without recompiling; only ``n_steps`` and
+``save_every`` are compile-time constants.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._checks import is_concrete
+from .integrators.base import AbstractIntegrator
+from .newton import RESULTS
+
+__all__ = ["IntegrationError", "Trajectory", "final_state", "simulate", "simulate_timed"]
+
+
+class IntegrationError(RuntimeError):
+    """A rollout failed (Newton did not converge, or the state became non-finite)."""
+
+
+class Trajectory(eqx.Module):
+    """A saved trajectory: one row per saved state, the initial state first.
+
+    Attributes:
+        t: times, shape ``(n_saved,)``, ``t0 + i * save_every * dt``.
+        state: the saved states (the model's state pytree with a leading axis ``n_saved``).
+        invariants: ``dict`` name -> array with leading axis ``n_saved``; always has
+            ``"energy"`` (also available as :attr:`energy`).
+        newton_steps: Newton iterations summed over the steps leading to each saved state
+            (0 for the initial state), ``(n_saved,)``.
+        newton_steps_max: the most iterations of any single step in that block.
+        result: ``int32`` code of the first failure, 0 (``RESULTS.successful``) if none.
+        failed_step: index (0-based) of the first failed step, -1 if none.
+        failed_residual: the Newton residual (max-norm) reported by the failed step.
+        n_steps, save_every: the (static) length and saving stride.
+        dt: the step.
+    """
+
+    t: jax.Array
+    state: Any
+    invariants: dict[str, jax.Array]
+    newton_steps: jax.Array
+    newton_steps_max: jax.Array
+    result: jax.Array
+    failed_step: jax.Array
+    failed_residual: jax.Array
+    dt: jax.Array
+    n_steps: int = eqx.field(static=True)
+    save_every: int = eqx.field(static=True)
+
+    @property
+    def energy(self) -> jax.Array:
+        """The energy of each saved state, shape ``(..., n_saved)``."""
+        return self.invariants["energy"]
+
+    @property
+    def ok(self) -> bool:
+        """True if every step succeeded (concrete trajectories only)."""
+        return bool(np.all(np.asarray(self.result) == RESULTS.successful))
+
+    @property
+    def message(self) -> str:
+        """A human-readable account of the outcome (concrete, unbatched trajectories)."""
+        code = int(np.max(np.asarray(self.result)))
+        if code == RESULTS.successful:
+            return f"all {self.n_steps} steps succeeded"
+        k = int(np.asarray(self.failed_step))
+        dt = float(np.asarray(self.dt))
+        t_start = float(np.asarray(self.t[0])) + k * dt
+        residual = float(np.asarray(self.failed_residual))
+        # Explicit steps have no Newton residual (reported as 0): say nothing about it.
+        detail = f"; Newton residual {residual:.3e}" if residual != 0 else ""
+        return (
+            f"step {k} (from t = {t_start:.6g} to t = {t_start + dt:.6g}) failed: "
+            f"{RESULTS.describe(code)}{detail}. States from that step on are NaN."
+        )
+
+    @property
+    def newton_mean(self) -> jax.Array:
+        """Mean Newton iterations per step over the run."""
+        return jnp.sum(self.newton_steps, axis=-1) / self.n_steps
+
+    @property
+    def newton_max(self) -> jax.Array:
+        """Most Newton iterations taken by any single step."""
+        return jnp.max(self.newton_steps_max, axis=-1)
+
+    def raise_if_failed(self) -> Trajectory:
+        """Raise :class:`IntegrationError` if any step failed; return ``self`` otherwise."""
+        if not is_concrete(self.result):
+            # Under jit only a fixed message is possible; attached to every output.
+            return eqx.error_if(
+                self, jnp.any(self.result != RESULTS.successful), "integration failed (throw=True)"
+            )
+        if np.ndim(self.result) != 0:
+            bad = int(np.sum(np.asarray(self.result) != RESULTS.successful))
+            if bad:
+                raise IntegrationError(f"{bad} of {np.size(self.result)} trajectories failed")
+            return self
+        if not self.ok:
+            raise IntegrationError(self.message)
+        return self
+
+
+def _all_finite(tree) -> jax.Array:
+    leaves = jax.tree.leaves(tree)
+    return jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in leaves]))
+
+
+def _guarded_step(model, method, state, dt, k, code, failed_step, failed_res):
+    """One step with failure bookkeeping: the first failure's code, step index and residual
+    are kept, and from the failed step on the state is NaN."""
+    new_state, info = method.step(model, state, dt)
+    step_code = jnp.where(
+        info.result != RESULTS.successful,
+        info.result,
+        jnp.where(_all_finite(new_state), RESULTS.successful, RESULTS.nonfinite),
+    ).astype(jnp.int32)
+    first_failure = (code == RESULTS.successful) & (step_code != RESULTS.successful)
+    code = jnp.where(first_failure, step_code, code)
+    failed_step = jnp.where(first_failure, k, failed_step)
+    failed_res = jnp.where(first_failure, info.residual, failed_res)
+    failed = code != RESULTS.successful
+    new_state = jax.tree.map(lambda x: jnp.where(failed, jnp.nan, x), new_state)
+    return new_state, code, failed_step, failed_res, info
+
+
+def _record(model, state):
+    return state, model.invariants(state)
+
+
+@eqx.filter_jit
+def _rollout(model, method, state0, dt, t0, n_steps: int, save_every: int) -> Trajectory:
+    n_blocks = n_steps // save_every
+    int0 = jnp.asarray(0, jnp.int32)
+
+    def one_step(carry, _):
+        state, k, code, failed_step, failed_res, it_sum, it_max = carry
+        running = code == RESULTS.successful
+        state, code, failed_step, failed_res, info = _guarded_step(
+            model, method, state, dt, k, code, failed_step, failed_res
+        )
+        iters = jnp.where(running, info.newton_steps, 0).astype(jnp.int32)
+        carry = (state, k + 1, code, failed_step, failed_res, it_sum + iters,
+                 jnp.maximum(it_max, iters))
+        return carry, None
+
+    def one_block(carry, _):
+        state, k, code, failed_step, failed_res = carry
+        inner = (state, k, code, failed_step, failed_res, int0, int0)
+        inner, _ = jax.lax.scan(one_step, inner, None, length=save_every)
+        state, k, code, failed_step, failed_res, it_sum, it_max = inner
+        saved = (*_record(model, state), it_sum, it_max)
+        return (state, k, code, failed_step, failed_res), saved
+
+    init = (
+        state0,
+        int0,
+        jnp.asarray(RESULTS.successful, jnp.int32),
+        jnp.asarray(-1, jnp.int32),
+        jnp.zeros((), dt.dtype),
+    )
+    (_, _, code, failed_step, failed_res), saved = jax.lax.scan(
+        one_block, init, None, length=n_blocks
+    )
+    first = (*_record(model, state0), int0, int0)
+
+    def prepend(x0, xs):
+        return jnp.concatenate([jnp.asarray(x0)[None], xs], axis=0)
+
+    states, inv, it_sum, it_max = jax.tree.map(prepend, first, saved)
+    t = t0 + dt * save_every * jnp.arange(n_blocks + 1, dtype=dt.dtype)
+    return Trajectory(
+        t=t,
+        state=states,
+        invariants=inv,
+        newton_steps=it_sum,
+        newton_steps_max=it_max,
+        result=code,
+        failed_step=failed_step,
+        failed_residual=failed_res,
+        dt=dt,
+        n_steps=n_steps,
+        save_every=save_every,
+    )
+
+
+def _check_int(name: str, value: Any, minimum: int = 1) -> None:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
+        raise ValueError(f"simulate: {name} must be an integer >= {minimum}, got {value!r}")
+
+
+def _prepare(model, method, state0, dt, n_steps, save_every, t0):
+    """Validate the arguments of :func:`simulate`; return the rollout's arguments."""
+    if not isinstance(method, AbstractIntegrator):
+        raise ValueError(
+            f"simulate: method must be an integrator (AbstractIntegrator), got {method!r}"
+        )
+    _check_int("n_steps", n_steps)
+    _check_int("save_every", save_every)
+    if n_steps % save_every:
+        raise ValueError(f"simulate: save_every ({save_every}) must divide n_steps ({n_steps})")
+    if jnp.ndim(dt) != 0:
+        raise ValueError(f"simulate: dt must be a scalar, got shape {jnp.shape(dt)}")
+    if is_concrete(dt):
+        dt_value = float(np.asarray(dt))
+        if not np.isfinite(dt_value) or dt_value == 0.0:
+            raise ValueError(f"simulate: dt must be finite and non-zero, got {dt_value!r}")
+    if hasattr(model, "check_state"):
+        model.check_state(state0)
+    method.check_model(model)
+    dt = jnp.asarray(dt, dtype=jnp.float64)
+    t0 = jnp.asarray(t0, dtype=jnp.float64)
+    return model, method, state0, dt, t0, int(n_steps), int(save_every)
+
+
+def simulate(
+    model: Any,
+    method: AbstractIntegrator,
+    state0: Any,
+    dt: float | jax.Array,
+    n_steps: int,
+    *,
+    save_every: int = 1,
+    t0: float | jax.Array = 0.0,
+    throw: bool = False,
+) -> Trajectory:
+    """Integrate ``model`` with ``method`` for ``n_steps`` steps of size ``dt``.
+
+    Args:
+        model: the system (e.g. :class:`~lgvi_jax.models.HarmonicOscillator`); its fields are
+            the parameters, differentiable and batchable.
+        method: a one-step method (:class:`~lgvi_jax.integrators.AbstractIntegrator`).
+        state0: the initial state (e.g. ``model.default_state()``), float64.
+        dt: the step; non-zero and finite. A negative step integrates backwards in time.
+        n_steps: number of steps (static: one compilation per value).
+        save_every: keep every ``save_every``-th state; must divide ``n_steps``.
+        t0: the initial time.
+        throw: raise :class:`IntegrationError` (naming the step and residual) on failure,
+            instead of only reporting it in ``Trajectory.result``.
+
+    Returns:
+        A :class:`Trajectory` with ``n_steps // save_every + 1`` saved states.
+
+    Raises:
+        ValueError: naming the argument, for invalid input.
+        IntegrationError: with ``throw=True``, if a step fails.
+    """
+    traj = _rollout(*_prepare(model, method, state0, dt, n_steps, save_every, t0))
+    if throw:
+        traj = traj.raise_if_failed()
+    return traj
+
+
+def simulate_timed(
+    model: Any,
+    method: AbstractIntegrator,
+    state0: Any,
+    dt: float | jax.Array,
+    n_steps: int,
+    *,
+    save_every: int = 1,
+    t0: float | jax.Array = 0.0,
+) -> tuple[Trajectory, dict[str, float]]:
+    """:func:`simulate`, with compilation and execution timed separately.
+
+    Returns the trajectory and ``{"compile_s", "run_s", "steps_per_second"}``, where the run
+    time excludes compilation (ahead-of-time ``lower().compile()``) and waits for the result.
+    """
+    args = _prepare(model, method, state0, dt, n_steps, save_every, t0)
+    start = time.perf_counter()
+    compiled = _rollout.lower(*args).compile()
+    compile_s = time.perf_counter() - start
+    start = time.perf_counter()
+    traj = jax.block_until_ready(compiled(*args))
+    run_s = time.perf_counter() - start
+    return traj, {
+        "compile_s": compile_s,
+        "run_s": run_s,
+        "steps_per_second": n_steps / run_s if run_s > 0 else float("inf"),
+    }
+
+
+@eqx.filter_jit
+def _final_state(model, method, state0, dt, n_steps):
+    def body(k, carry):
+        state, code, failed_step, failed_res = carry
+        state, code, failed_step, failed_res, _ = _guarded_step(
+            model, method, state, dt, k, code, failed_step, failed_res
+        )
+        return state, code, failed_step, failed_res
+
+    init = (state0, jnp.asarray(RESULTS.successful, jnp.int32), jnp.asarray(-1, jnp.int32),
+            jnp.zeros((), dt.dtype))
+    state, code, _, _ = jax.lax.fori_loop(jnp.asarray(0, jnp.int32), n_steps, body, init)
+    return state, code
+
+
+def final_state(
+    model: Any, method: AbstractIntegrator, state0: Any, dt: float | jax.Array, n_steps: int
+) -> tuple[Any, jax.Array]:
+    """The state after ``n_steps`` steps of ``dt``, and the result code.
+
+    Unlike :func:`simulate`, ``n_steps`` is a run-time value here (a ``while`` loop), so a
+    convergence study over many step sizes compiles once per method. The price: no saved
+    states, no statistics, and no reverse-mode differentiation (``while`` loops only support
+    forward mode); use :func:`simulate` for those. A failed step gives a NaN state and a
+    non-zero code, as in :func:`simulate`.
+    """
+    model, method, state0, dt, _, n, _ = _prepare(model, method, state0, dt, n_steps, 1, 0.0)
+    return _final_state(model, method, state0, dt, jnp.asarray(n, jnp.int32))

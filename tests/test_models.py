@@ -1,0 +1,103 @@
+"""Models: mechanics derived by autodiff, exact solutions, parameter validation."""
+
+from typing import ClassVar
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import lgvi_jax  # noqa: F401  (float64)
+from lgvi_jax.models import AbstractEuclideanModel, HarmonicOscillator, PhaseState
+
+
+class Gyroscopic(AbstractEuclideanModel):
+    """T = ½ vᵀ M(q) v + vᵀ A q with a position-dependent SPD mass matrix."""
+
+    dof: ClassVar[int] = 3
+    separable: ClassVar[bool] = False
+
+    def mass(self, q):
+        B = jnp.array([[2.0, 0.3, 0.1], [0.3, 1.5, -0.2], [0.1, -0.2, 1.0]])
+        return B + jnp.diag(q**2)
+
+    def kinetic(self, q, v):
+        A = jnp.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.5], [0.0, -0.5, 0.0]])
+        return 0.5 * v @ self.mass(q) @ v + v @ (A @ q)
+
+    def potential(self, q):
+        return 0.5 * jnp.sum(q**2)
+
+    def default_state(self):
+        return PhaseState(q=jnp.array([0.3, -0.2, 0.5]), p=jnp.array([0.1, 0.4, -0.3]))
+
+
+def test_legendre_transform_round_trip():
+    model = Gyroscopic()
+    q = jnp.array([0.4, -0.1, 0.2])
+    v = jnp.array([1.0, -2.0, 0.5])
+    p = model.momentum(q, v)
+    np.testing.assert_allclose(np.asarray(model.velocity(q, p)), np.asarray(v), rtol=1e-14)
+    # p = M v + A q, written out by hand
+    A = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.5], [0.0, -0.5, 0.0]])
+    np.testing.assert_allclose(np.asarray(p), np.asarray(model.mass(q)) @ v + A @ q, rtol=1e-14)
+
+
+def test_energy_is_the_hamiltonian():
+    model = HarmonicOscillator(m=2.0, k=3.0)
+    state = PhaseState(q=jnp.array([0.7]), p=jnp.array([-1.1]))
+    assert float(model.energy(state)) == pytest.approx(1.1**2 / 4 + 1.5 * 0.49, rel=1e-15)
+    # Gyroscopic terms do no work: H = ½ vᵀMv + U, whatever A is
+    g = Gyroscopic()
+    s = g.default_state()
+    v = g.velocity(s.q, s.p)
+    expected = 0.5 * v @ g.mass(s.q) @ v + g.potential(s.q)
+    assert float(g.energy(s)) == pytest.approx(float(expected), rel=1e-14)
+
+
+def test_vector_field_is_hamiltons_equations():
+    g = Gyroscopic()
+    s = g.default_state()
+
+    def H(q, p):
+        return g.energy(PhaseState(q=q, p=p))
+
+    dHdq, dHdp = jax.grad(H, argnums=(0, 1))(s.q, s.p)
+    f = g.vector_field(s)
+    np.testing.assert_allclose(np.asarray(f.q), np.asarray(dHdp), rtol=1e-13)
+    np.testing.assert_allclose(np.asarray(f.p), -np.asarray(dHdq), rtol=1e-13)
+
+
+def test_oscillator_exact_solution_solves_the_ode():
+    model = HarmonicOscillator(m=1.5, k=0.6)
+    s0 = PhaseState(q=jnp.array([0.3]), p=jnp.array([1.2]))
+    t = 2.7
+    state, rate = jax.jvp(lambda t: model.exact(s0, t), (jnp.asarray(t),), (jnp.asarray(1.0),))
+    f = model.vector_field(PhaseState(q=state.q, p=state.p))
+    np.testing.assert_allclose(np.asarray(rate.q), np.asarray(f.q), rtol=1e-14)
+    np.testing.assert_allclose(np.asarray(rate.p), np.asarray(f.p), rtol=1e-14)
+    e0 = model.energy(s0)
+    assert float(model.energy(state)) == pytest.approx(float(e0), rel=1e-14)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [({"m": 0.0}, "m must be finite and > 0"), ({"m": -1.0}, "m must be"),
+     ({"k": float("nan")}, "k must be finite"), ({"k": float("inf")}, "k must be finite"),
+     ({"m": "heavy"}, "m must be a number")],
+)
+def test_oscillator_rejects_bad_parameters(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        HarmonicOscillator(**kwargs)
+
+
+def test_parameters_are_traceable():
+    # Under vmap/grad the parameter values are unknown: no check may fire, and the fields are
+    # differentiable leaves.
+    ks = jnp.array([0.5, 2.0])
+    energies = jax.vmap(lambda k: HarmonicOscillator(k=k).energy(
+        PhaseState(q=jnp.ones(1), p=jnp.zeros(1))))(ks)
+    np.testing.assert_allclose(np.asarray(energies), [0.25, 1.0])
+    grad_m = jax.grad(lambda m: HarmonicOscillator(m=m).energy(
+        PhaseState(q=jnp.zeros(1), p=jnp.ones(1))))(2.0)
+    assert float(grad_m) == pytest.approx(-1 / 8)
