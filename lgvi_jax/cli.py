@@ -1,0 +1,273 @@
+"""Command-line interface: ``lgvi-jax {simulate, reproduce, info}``.
+
+A thin layer over the library. Bad input exits with status 2 and a one-line message (no
+traceback); a run whose integration fails still writes its output (with the failure
+recorded in it), prints what failed, and exits with status 1.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import tempfile
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any, NoReturn
+
+import numpy as np
+
+PROG = "lgvi-jax"
+
+
+class UsageError(Exception):
+    """Bad command-line input: reported in one line, exit status 2."""
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> NoReturn:
+        self.print_usage(sys.stderr)
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+
+# ---------------------------------------------------------------------------------------
+# Parsing helpers
+# ---------------------------------------------------------------------------------------
+
+
+def parse_set(items: Sequence[str] | None) -> dict[str, np.ndarray]:
+    """Parse repeated ``--set NAME=V1,V2,...`` options into float arrays."""
+    values: dict[str, np.ndarray] = {}
+    for item in items or []:
+        name, sep, rhs = item.partition("=")
+        name = name.strip()
+        if not sep or not name or not rhs.strip():
+            raise UsageError(f"--set {item!r}: expected NAME=V or NAME=V1,V2,... (e.g. m=1.5)")
+        try:
+            numbers = [float(v) for v in rhs.split(",")]
+        except ValueError:
+            raise UsageError(
+                f"--set {item!r}: values must be numbers separated by commas"
+            ) from None
+        if not all(math.isfinite(v) for v in numbers):
+            raise UsageError(f"--set {item!r}: values must be finite (no nan or inf)")
+        if name in values:
+            raise UsageError(f"--set: {name} given twice")
+        values[name] = np.asarray(numbers, dtype=np.float64)
+    return values
+
+
+def steps_for(dt: float, t_final: float) -> int:
+    """Number of steps of size ``dt`` in ``t_final`` (both validated, positive, finite)."""
+    if not math.isfinite(dt) or dt <= 0:
+        raise UsageError(f"--dt must be a finite number > 0, got {dt!r}")
+    if not math.isfinite(t_final) or t_final <= 0:
+        raise UsageError(f"--t-final must be a finite number > 0, got {t_final!r}")
+    n = round(t_final / dt)
+    if n < 1 or abs(n * dt - t_final) > 1e-9 * max(t_final, dt):
+        raise UsageError(
+            f"--t-final ({t_final:g}) must be a positive multiple of --dt ({dt:g}); "
+            f"t_final/dt = {t_final / dt:.6g}"
+        )
+    return int(n)
+
+
+def _float(text: str) -> float:
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
+    return value
+
+
+def write_npz_atomic(path: Path, arrays: dict[str, Any]) -> None:
+    """Write ``arrays`` to ``path`` (.npz) through a temporary file and a rename, so an
+    interrupted run never leaves a truncated file behind."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            np.savez(fh, **arrays)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def _check_writable_file(path: Path) -> None:
+    parent = path.parent
+    try:
+        parent.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise UsageError(f"--out {path}: cannot create folder {parent}: {err.strerror}") from None
+    if path.is_dir():
+        raise UsageError(f"--out {path}: is a folder, expected a file name ending in .npz")
+    if not os.access(parent, os.W_OK):
+        raise UsageError(f"--out {path}: folder {parent} is not writable")
+
+
+# ---------------------------------------------------------------------------------------
+# Commands
+# ---------------------------------------------------------------------------------------
+
+
+def cmd_simulate(args: argparse.Namespace) -> int:
+    from .diagnostics import summarize
+    from .scenes import get_scene
+    from .simulate import simulate_timed
+
+    scene = get_scene(args.system)
+    if args.method not in scene.methods:
+        raise UsageError(
+            f"--method {args.method!r} is not available for {scene.name}; "
+            f"choose from: {', '.join(scene.methods)}"
+        )
+    n_steps = steps_for(args.dt, args.t_final)
+    if n_steps % args.save_every:
+        raise UsageError(
+            f"--save-every ({args.save_every}) must divide the number of steps ({n_steps})"
+        )
+    out = Path(args.out)
+    if out.suffix != ".npz":
+        raise UsageError(f"--out {out}: expected a file name ending in .npz")
+    _check_writable_file(out)
+    overrides = parse_set(args.set)
+    try:
+        model, state0 = scene.build(overrides)
+    except ValueError as err:
+        raise UsageError(str(err)) from None
+    method = scene.method(args.method)
+    traj, timing = simulate_timed(
+        model, method, state0, args.dt, n_steps, save_every=args.save_every
+    )
+    summary = summarize(traj)
+    config = {
+        "system": scene.name,
+        "method": method.name,
+        "dt": args.dt,
+        "t_final": args.t_final,
+        "n_steps": n_steps,
+        "save_every": args.save_every,
+        "parameters": {k: v.tolist() for k, v in overrides.items()},
+    }
+    arrays = scene.arrays(traj)
+    arrays["result"] = np.asarray(traj.result)
+    arrays["newton_iterations"] = np.asarray(traj.newton_steps)
+    arrays["config_json"] = np.asarray(json.dumps(config))
+    write_npz_atomic(out, arrays)
+    report = {
+        **config,
+        **summary,
+        "wall_time_s": timing["compile_s"] + timing["run_s"],
+        "compile_time_s": timing["compile_s"],
+        "run_time_s": timing["run_s"],
+        "steps_per_second": timing["steps_per_second"],
+        "out": str(out),
+    }
+    if args.json:
+        print(json.dumps(report))
+    else:
+        print(
+            f"{scene.name} / {method.describe()}: {n_steps} steps of {args.dt:g} "
+            f"in {timing['run_s']:.3g} s ({timing['steps_per_second']:.3g} steps/s, "
+            f"compiled in {timing['compile_s']:.3g} s)\n"
+            f"relative energy error: max {summary['energy_error_max']:.3e}, "
+            f"final {summary['energy_error_final']:.3e}\n"
+            f"wrote {out} ({len(arrays['t'])} saved states)"
+        )
+    if summary["result"] != 0:
+        print(f"{PROG} simulate: integration failed: {summary['message']}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def cmd_reproduce(args: argparse.Namespace) -> int:
+    from .reproduce import reproduce
+
+    out = Path(args.out)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise UsageError(f"--out {out}: cannot create folder: {err.strerror}") from None
+    if not os.access(out, os.W_OK):
+        raise UsageError(f"--out {out}: folder is not writable")
+    reproduce(out, quick=args.quick, force=args.force)
+    return 0
+
+
+def cmd_info(args: argparse.Namespace) -> int:
+    from .scenes import SCENES
+
+    for scene in SCENES.values():
+        print(f"{scene.name}: {scene.description}")
+        print("  methods:")
+        for name, make in scene.methods.items():
+            print(f"    {name:<11} {make().describe()}")
+        print("  --set parameters:")
+        for p in scene.parameters:
+            default = ",".join(f"{v:g}" for v in p.default)
+            print(f"    {p.name:<11} {p.size} number(s), default {default}: {p.doc}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from .scenes import SCENES
+
+    parser = _Parser(
+        prog=PROG,
+        description="Structure-preserving integrators for rigid-body mechanics (JAX).",
+    )
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
+
+    sim = sub.add_parser("simulate", help="integrate one system with one method")
+    sim.add_argument("system", choices=list(SCENES), help="the system to integrate")
+    sim.add_argument("--method", required=True, help="integrator (see `lgvi-jax info`)")
+    sim.add_argument("--dt", required=True, type=_float, help="step size (> 0)")
+    sim.add_argument("--t-final", required=True, type=_float, help="final time, a multiple of dt")
+    sim.add_argument("--save-every", type=_positive_int, default=1, metavar="K",
+                     help="keep every K-th state (K must divide the number of steps)")
+    sim.add_argument("--set", action="append", metavar="NAME=V1[,V2...]",
+                     help="override a parameter or initial value (repeatable)")
+    sim.add_argument("--out", required=True, help="output file (.npz)")
+    sim.add_argument("--json", action="store_true", help="print a one-object JSON summary")
+    sim.set_defaults(func=cmd_simulate)
+
+    rep = sub.add_parser("reproduce", help="reproduce the paper's results into a folder")
+    rep.add_argument("--out", required=True, help="output folder")
+    rep.add_argument("--quick", action="store_true",
+                     help="shorter runs (for smoke tests); the figures keep their layout")
+    rep.add_argument("--force", action="store_true",
+                     help="recompute stages whose results already exist in the folder")
+    rep.set_defaults(func=cmd_reproduce)
+
+    info = sub.add_parser("info", help="list systems, methods and parameters")
+    info.set_defaults(func=cmd_info)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return args.func(args)
+    except UsageError as err:
+        print(f"{PROG} {args.command}: error: {err}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"{PROG} {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

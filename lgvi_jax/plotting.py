@@ -1,0 +1,51 @@
+"""Plotting helpers (matplotlib, Agg backend, PNG output)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import numpy as np
+
+__all__ = ["METHOD_STYLE", "figure", "save", "style_for"]
+
+#: One colour and line style per method name, shared by every figure.
+METHOD_STYLE: dict[str, dict[str, Any]] = {
+    "exact": {"color": "black", "linestyle": ":", "linewidth": 1.2},
+    "rk4": {"color": "tab:red", "linestyle": "-"},
+    "gl4": {"color": "tab:blue", "linestyle": "--"},
+    "gl6": {"color": "tab:cyan", "linestyle": "--"},
+    "galerkin4": {"color": "tab:green", "linestyle": "-."},
+    "galerkin6": {"color": "tab:olive", "linestyle": "-."},
+    "verlet": {"color": "tab:purple", "linestyle": "-"},
+}
+
+
+def style_for(name: str) -> dict[str, Any]:
+    """Line style for a method (a neutral default for unknown names)."""
+    return dict(METHOD_STYLE.get(name, {"color": "tab:gray"}))
+
+
+def figure(nrows: int = 1, ncols: int = 1, *, width: float = 7.0, height: float = 3.6, **kw):
+    """A figure with a consistent size; returns ``(fig, axes)``."""
+    fig, axes = plt.subplots(nrows, ncols, figsize=(width, height * nrows), **kw)
+    return fig, axes
+
+
+def save(fig, path: Path | str) -> Path:
+    """Save ``fig`` as PNG (150 dpi, tight) and close it."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.tight_layout()
+    fig.savefig(path, dpi=150)
+    plt.close(fig)
+    return path
+
+
+def positive(values: Any, floor: float = 1e-17) -> np.ndarray:
+    """``|values|`` clipped below at ``floor``, for log-scale axes (exact zeros would vanish)."""
+    return np.maximum(np.abs(np.asarray(values, dtype=np.float64)), floor)

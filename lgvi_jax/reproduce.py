@@ -1,0 +1,61 @@
+"""``lgvi-jax reproduce``: run every study of the paper into one folder.
+
+Each stage writes into its own sub-folder and finishes by writing ``results.json``; a
+stage whose ``results.json`` exists (with the same settings) is skipped on a re-run, so an
+interrupted reproduction loses at most the stage it was in. ``force=True`` recomputes.
+"""
+
+from __future__ import annotations
+
+import importlib
+import json
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+__all__ = ["STAGES", "reproduce"]
+
+#: (name, module): each module has ``run(out_dir, quick=False, log=print) -> dict``.
+STAGES: list[tuple[str, str]] = [
+    ("oscillator", "lgvi_jax.experiments.oscillator"),
+]
+
+
+def _log(message: str) -> None:
+    print(message, file=sys.stderr, flush=True)
+
+
+def _done(stage_dir: Path, quick: bool) -> bool:
+    marker = stage_dir / "results.json"
+    if not marker.exists():
+        return False
+    try:
+        return json.loads(marker.read_text()).get("quick") == quick
+    except (OSError, json.JSONDecodeError):
+        return False
+
+
+def reproduce(
+    out: Path | str, *, quick: bool = False, force: bool = False, log: Callable = _log
+) -> Path:
+    """Run all stages into ``out``; return the path of the index ``out/README.md``."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    sections = []
+    for i, (name, module) in enumerate(STAGES, 1):
+        stage_dir = out / name
+        if _done(stage_dir, quick) and not force:
+            log(f"[{i}/{len(STAGES)}] {name}: already done in {stage_dir} (--force to redo)")
+        else:
+            log(f"[{i}/{len(STAGES)}] {name}: running{' (quick)' if quick else ''} ...")
+            start = time.perf_counter()
+            importlib.import_module(module).run(stage_dir, quick=quick, log=log)
+            log(f"[{i}/{len(STAGES)}] {name}: done in {time.perf_counter() - start:.1f} s")
+        summary = stage_dir / "summary.md"
+        if summary.exists():
+            sections.append(f"## {name}\n\nFolder: `{name}/`\n\n{summary.read_text()}")
+    index = out / "README.md"
+    index.write_text("# lgvi_jax: reproduced results\n\n" + "\n\n".join(sections) + "\n")
+    log(f"results in {out} (index: {index})")
+    return index

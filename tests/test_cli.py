@@ -1,0 +1,171 @@
+"""The command line: outputs, the JSON summary, and clear errors (exit 2, no traceback)."""
+
+import json
+import re
+import subprocess
+import sys
+from importlib.metadata import entry_points
+
+import numpy as np
+import pytest
+
+from lgvi_jax.cli import main
+from lgvi_jax.diagnostics import rk4_energy_factor
+
+
+def run_cli(args, capsys):
+    code = main(args)
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def test_simulate_writes_npz(tmp_path, capsys):
+    out = tmp_path / "sub" / "run.npz"
+    code, stdout, _ = run_cli(
+        ["simulate", "oscillator", "--method", "gl4", "--dt", "0.1", "--t-final", "10",
+         "--out", str(out)], capsys)
+    assert code == 0
+    assert "wrote" in stdout
+    data = np.load(out)
+    for key in ("t", "q", "p", "energy"):
+        assert data[key].shape == (101,)
+    assert data["q"][0] == 1.0 and data["p"][0] == 0.0
+    np.testing.assert_allclose(data["t"], 0.1 * np.arange(101), rtol=1e-14)
+    np.testing.assert_allclose(data["q"], np.cos(data["t"]), atol=1e-5)
+    np.testing.assert_allclose(data["energy"], 0.5, rtol=1e-13)
+    assert json.loads(str(data["config_json"]))["method"] == "gl4"
+    assert int(data["result"]) == 0
+
+
+def test_simulate_json_summary_and_options(tmp_path, capsys):
+    out = tmp_path / "rk4.npz"
+    code, stdout, _ = run_cli(
+        ["simulate", "oscillator", "--method", "rk4", "--dt", "0.1", "--t-final", "100",
+         "--save-every", "10", "--set", "q0=2", "--set", "p0=0", "--set", "m=1",
+         "--set", "k=1", "--out", str(out), "--json"], capsys)
+    assert code == 0
+    summary = json.loads(stdout)  # exactly one JSON object on stdout
+    for key in ("energy_error_max", "energy_error_final", "wall_time_s", "steps_per_second",
+                "n_steps", "result"):
+        assert key in summary
+    assert summary["n_steps"] == 1000
+    assert summary["steps_per_second"] > 0
+    # RK4's energy loss is known in closed form: the summary reports it.
+    assert summary["energy_error_final"] == pytest.approx(1 - rk4_energy_factor(0.1, 1000),
+                                                         rel=1e-6)
+    data = np.load(out)
+    assert data["q"].shape == (101,) and data["q"][0] == 2.0
+
+
+def test_set_changes_the_physics(tmp_path, capsys):
+    out = tmp_path / "m.npz"
+    code, _, _ = run_cli(["simulate", "oscillator", "--method", "galerkin4", "--dt", "0.05",
+                          "--t-final", "2", "--set", "m=4", "--set", "k=1", "--out", str(out)],
+                         capsys)
+    assert code == 0
+    data = np.load(out)
+    np.testing.assert_allclose(data["q"], np.cos(0.5 * data["t"]), atol=1e-7)  # ω = √(k/m)
+
+
+BAD = [
+    (["--dt", "0"], "--dt must be a finite number > 0"),
+    (["--dt", "-0.1"], "--dt must be a finite number > 0"),
+    (["--dt", "nan"], "--dt must be a finite number > 0"),
+    (["--dt", "inf"], "--dt must be a finite number > 0"),
+    (["--dt", "abc"], "expected a number"),
+    (["--t-final", "1.05"], "must be a positive multiple of --dt"),
+    (["--t-final", "0"], "--t-final must be a finite number > 0"),
+    (["--t-final", "-1"], "--t-final must be a finite number > 0"),
+    (["--method", "euler"], "--method 'euler' is not available for oscillator"),
+    (["--set", "q0"], "expected NAME=V"),
+    (["--set", "=1"], "expected NAME=V"),
+    (["--set", "q0=one"], "values must be numbers"),
+    (["--set", "q0=1,2"], "q0 takes 1 number"),
+    (["--set", "q0=nan"], "values must be finite"),
+    (["--set", "p0=inf"], "values must be finite"),
+    (["--set", "omega=1"], "unknown parameter 'omega'"),
+    (["--set", "m=0"], "m must be finite and > 0"),
+    (["--set", "k=-2"], "k must be finite and > 0"),
+    (["--save-every", "7"], r"--save-every \(7\) must divide the number of steps \(10\)"),
+    (["--save-every", "0"], "expected a positive integer"),
+]
+
+
+def exit_code(argv):
+    """Run the CLI in-process; argparse's own errors raise SystemExit, ours return 2."""
+    try:
+        return main(argv)
+    except SystemExit as stop:
+        return stop.code
+
+
+@pytest.mark.parametrize(("extra", "message"), BAD, ids=[" ".join(b[0]) for b in BAD])
+def test_bad_input_exits_2_with_message(tmp_path, capsys, extra, message):
+    options = {"--method": "rk4", "--dt": "0.1", "--t-final": "1"}
+    rest = []
+    for flag, value in zip(extra[::2], extra[1::2], strict=True):
+        if flag in options:
+            options[flag] = value
+        else:
+            rest += [flag, value]
+    out = tmp_path / "x.npz"
+    argv = ["simulate", "oscillator", *[x for kv in options.items() for x in kv], *rest,
+            "--out", str(out)]
+    assert exit_code(argv) == 2
+    err = capsys.readouterr().err
+    assert "error:" in err
+    assert re.search(message, err), err
+    assert "Traceback" not in err
+    assert not out.exists()
+
+
+def test_unknown_system_and_bad_out(tmp_path, capsys):
+    with pytest.raises(SystemExit) as info:
+        main(["simulate", "pendulum9", "--method", "rk4", "--dt", "0.1", "--t-final", "1",
+              "--out", str(tmp_path / "x.npz")])
+    assert info.value.code == 2
+    assert "invalid choice: 'pendulum9'" in capsys.readouterr().err
+    code, _, err = run_cli(["simulate", "oscillator", "--method", "rk4", "--dt", "0.1",
+                            "--t-final", "1", "--out", str(tmp_path / "x.txt")], capsys)
+    assert code == 2 and "ending in .npz" in err
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    code, _, err = run_cli(["simulate", "oscillator", "--method", "rk4", "--dt", "0.1",
+                            "--t-final", "1", "--out", str(blocker / "x.npz")], capsys)
+    assert code == 2 and "cannot create folder" in err
+
+
+def test_failed_integration_exits_1_and_keeps_output(tmp_path, capsys):
+    out = tmp_path / "blowup.npz"
+    code, _, err = run_cli(["simulate", "oscillator", "--method", "rk4", "--dt", "3",
+                            "--t-final", "6000", "--out", str(out)], capsys)
+    assert code == 1
+    assert "integration failed" in err and "non-finite" in err
+    data = np.load(out)
+    assert int(data["result"]) == 2 and np.isnan(data["q"][-1])
+
+
+def test_info_lists_methods(capsys):
+    code, out, _ = run_cli(["info"], capsys)
+    assert code == 0
+    for name in ("rk4", "gl4", "verlet", "galerkin4"):
+        assert name in out
+    assert "order 4, symmetric, symplectic, implicit" in out
+
+
+def test_console_script_is_declared_and_runs(tmp_path):
+    scripts = {ep.name: ep.value for ep in entry_points(group="console_scripts")}
+    assert scripts.get("lgvi-jax") == "lgvi_jax.cli:main"
+    out = tmp_path / "v.npz"
+    proc = subprocess.run(
+        [sys.executable, "-m", "lgvi_jax.cli", "simulate", "oscillator", "--method", "verlet",
+         "--dt", "0.1", "--t-final", "1", "--out", str(out), "--json"],
+        capture_output=True, text=True, check=False)
+    assert proc.returncode == 0, proc.stderr
+    assert json.loads(proc.stdout)["method"] == "verlet"
+    proc = subprocess.run(
+        [sys.executable, "-m", "lgvi_jax.cli", "simulate", "oscillator", "--method", "verlet",
+         "--dt", "-1", "--t-final", "1", "--out", str(out)],
+        capture_output=True, text=True, check=False)
+    assert proc.returncode == 2
+    assert "Traceback" not in proc.stderr and "--dt must be" in proc.stderr
