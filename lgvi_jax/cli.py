@@ -141,12 +141,12 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.suffix != ".npz":
         raise UsageError(f"--out {out}: expected a file name ending in .npz")
-    _check_writable_file(out)
     overrides = parse_set(args.set)
     try:
         model, state0 = scene.build(overrides)
     except ValueError as err:
         raise UsageError(str(err)) from None
+    _check_writable_file(out)  # last: nothing is created on disk for a rejected command
     method = scene.method(args.method)
     traj, timing = simulate_timed(
         model, method, state0, args.dt, n_steps, save_every=args.save_every

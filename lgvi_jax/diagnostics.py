@@ -65,6 +65,10 @@ def summarize(traj: Any) -> dict[str, Any]:
     err = relative_energy_error(traj.energy)
     finite = np.isfinite(err)
     code = int(np.asarray(traj.result))
+    try:
+        result_name = RESULTS(code).name
+    except ValueError:
+        result_name = f"unknown ({code})"
     out = {
         "n_steps": int(traj.n_steps),
         "dt": float(np.asarray(traj.dt)),
@@ -72,7 +76,7 @@ def summarize(traj: Any) -> dict[str, Any]:
         "energy_error_max": float(np.max(err[finite])) if finite.any() else float("nan"),
         "energy_error_final": float(err[-1]),
         "result": code,
-        "result_name": RESULTS(code).name if code in RESULTS._value2member_map_ else str(code),
+        "result_name": result_name,
         "message": traj.message,
         "newton_iterations_mean": float(np.asarray(traj.newton_mean)),
         "newton_iterations_max": int(np.asarray(traj.newton_max)),
