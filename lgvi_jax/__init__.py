@@ -16,14 +16,26 @@ jax.config.update("jax_enable_x64", True)
 from . import diagnostics, so3  # noqa: E402
 from .integrators import (  # noqa: E402
     EUCLIDEAN_METHODS,
+    LGVI,
+    RIGID_METHODS,
     RK4,
     AbstractIntegrator,
     GalerkinVI,
     GaussLegendre,
+    HamelVI,
     StepInfo,
     StormerVerlet,
 )
-from .models import AbstractEuclideanModel, HarmonicOscillator, PhaseState  # noqa: E402
+from .models import (  # noqa: E402
+    AbstractEuclideanModel,
+    AbstractRigidBodyModel,
+    CarPendulum,
+    FreeRigidBody,
+    HarmonicOscillator,
+    HeavyTop,
+    PhaseState,
+    RigidState,
+)
 from .newton import RESULTS, Newton, NewtonError, NewtonSolution, newton_solve  # noqa: E402
 from .simulate import (  # noqa: E402
     IntegrationError,
@@ -37,18 +49,26 @@ __version__ = "0.1.0"
 
 __all__ = [
     "EUCLIDEAN_METHODS",
+    "LGVI",
     "RESULTS",
+    "RIGID_METHODS",
     "RK4",
     "AbstractEuclideanModel",
     "AbstractIntegrator",
+    "AbstractRigidBodyModel",
+    "CarPendulum",
+    "FreeRigidBody",
     "GalerkinVI",
     "GaussLegendre",
+    "HamelVI",
     "HarmonicOscillator",
+    "HeavyTop",
     "IntegrationError",
     "Newton",
     "NewtonError",
     "NewtonSolution",
     "PhaseState",
+    "RigidState",
     "StepInfo",
     "StormerVerlet",
     "Trajectory",

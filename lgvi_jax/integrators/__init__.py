@@ -5,6 +5,7 @@ from collections.abc import Callable
 from .base import AbstractIntegrator, StepInfo
 from .galerkin import GalerkinVI
 from .gauss_legendre import GaussLegendre
+from .lie import LGVI, AbstractLieVI, HamelVI
 from .rk4 import RK4
 from .verlet import StormerVerlet
 
@@ -18,12 +19,28 @@ EUCLIDEAN_METHODS: dict[str, Callable[[], AbstractIntegrator]] = {
     "galerkin6": lambda: GalerkinVI(degree=3),
 }
 
+#: Methods for models on SO(3) x R^n. The first five are the paper's and the issue's;
+#: ``rk4`` and ``gl4`` integrate the continuous equations with R embedded as 9 numbers.
+RIGID_METHODS: dict[str, Callable[[], AbstractIntegrator]] = {
+    "lgvi": LGVI,
+    "hamel": lambda: HamelVI(map="exp", variation="paper"),
+    "hamel-cayley": lambda: HamelVI(map="cayley", variation="paper"),
+    "hamel-exact": lambda: HamelVI(map="exp", variation="exact"),
+    "rk4": RK4,
+    "hamel-cayley-exact": lambda: HamelVI(map="cayley", variation="exact"),
+    "gl4": lambda: GaussLegendre(stages=2),
+}
+
 __all__ = [
     "EUCLIDEAN_METHODS",
+    "LGVI",
+    "RIGID_METHODS",
     "RK4",
     "AbstractIntegrator",
+    "AbstractLieVI",
     "GalerkinVI",
     "GaussLegendre",
+    "HamelVI",
     "StepInfo",
     "StormerVerlet",
 ]

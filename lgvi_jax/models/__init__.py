@@ -2,5 +2,16 @@
 
 from .base import AbstractEuclideanModel, PhaseState
 from .oscillator import HarmonicOscillator
+from .rigid import AbstractRigidBodyModel, RigidState
+from .rigid_bodies import CarPendulum, FreeRigidBody, HeavyTop
 
-__all__ = ["AbstractEuclideanModel", "HarmonicOscillator", "PhaseState"]
+__all__ = [
+    "AbstractEuclideanModel",
+    "AbstractRigidBodyModel",
+    "CarPendulum",
+    "FreeRigidBody",
+    "HarmonicOscillator",
+    "HeavyTop",
+    "PhaseState",
+    "RigidState",
+]

@@ -1,0 +1,254 @@
+r"""Rigid-body scenes: free rigid body, heavy top, and the paper's 3D car-pendulum.
+
+Each defines only its energies (in the matrix form of :mod:`lgvi_jax.models.rigid`), its
+default state and its invariants. Conventions: ``R`` maps body to inertial coordinates,
+``ω`` is the body angular velocity, and ``e3 = (0, 0, 1)`` points **down**, along gravity
+(as in the paper), so the potential of a mass centre at body point ``ρ_c`` is
+``U = −m g e3ᵀ R ρ_c``.
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .. import so3
+from .._checks import as_float_array, check_positive, is_concrete
+from .rigid import AbstractRigidBodyModel, RigidState, check_inertia
+
+__all__ = ["CarPendulum", "FreeRigidBody", "HeavyTop", "rotational_kinetic"]
+
+E3 = (0.0, 0.0, 1.0)
+
+#: The paper's pendulum (section 3): inertia about the pivot = 0.04 I about the mass
+#: centre plus the parallel-axis term of m = 1 at rho_c = (0.25, 0.25, 1.0).
+PAPER_J = ((1.1025, -0.0625, -0.25), (-0.0625, 1.1025, -0.25), (-0.25, -0.25, 0.165))
+PAPER_RHO_C = (0.25, 0.25, 1.0)
+PAPER_R0 = ((1.0, 0.0, 0.0), (0.0, 0.0, -1.0), (0.0, 1.0, 0.0))
+PAPER_OMEGA0 = (0.1, 0.2, 5.0)
+
+
+def rotational_kinetic(J: jax.Array, Omega: jax.Array) -> jax.Array:
+    r"""``½ tr(Ω J_d Ωᵀ)`` with ``J_d = ½ tr(J) I − J``: equals ``½ ωᵀJω`` for
+    ``Ω = hat(ω)``, and ``tr((I − F) J_d)/h²`` for ``Ω = (F − I)/h``, ``F`` in SO(3)
+    (Lee, Leok, McClamroch 2007, the general LGVI's kinetic energy)."""
+    Jd = 0.5 * jnp.trace(J) * jnp.eye(3, dtype=J.dtype) - J
+    return 0.5 * jnp.sum((Omega @ Jd) * Omega)
+
+
+def _check_rotation(name: str, R, owner: str) -> None:
+    if not is_concrete(R):
+        return
+    arr = np.asarray(R)
+    if arr.shape != (3, 3):
+        raise ValueError(f"{owner}: {name} must be a 3x3 matrix (9 numbers), got shape "
+                         f"{arr.shape}")
+    if not so3.is_rotation(arr, atol=1e-9):
+        err = float(so3.orthogonality_error(arr)) if np.all(np.isfinite(arr)) else float("nan")
+        det = float(np.linalg.det(arr)) if np.all(np.isfinite(arr)) else float("nan")
+        raise ValueError(
+            f"{owner}: {name} is not in SO(3): ‖RᵀR − I‖_F = {err:.3e}, det = {det:.6g} "
+            "(need an orthogonal matrix with determinant +1, to 1e-9)"
+        )
+
+
+def _check_shape(name: str, value, shape: tuple[int, ...], owner: str) -> None:
+    if jnp.shape(value) != shape:
+        raise ValueError(f"{owner}: {name} must have shape {shape}, got {jnp.shape(value)}")
+
+
+def _check_finite(name: str, value, owner: str) -> None:
+    if is_concrete(value) and not np.all(np.isfinite(np.asarray(value))):
+        raise ValueError(f"{owner}: {name} must be finite, got {np.asarray(value).tolist()}")
+
+
+def _gravity_potential(m, g, rho_c, R):
+    return -m * g * jnp.dot(jnp.asarray(E3, R.dtype), R @ rho_c)
+
+
+class FreeRigidBody(AbstractRigidBodyModel):
+    r"""A free rigid body: :math:`L = \tfrac12\omega^\top J\omega`, no potential.
+
+    Invariants: energy and the spatial angular momentum :math:`R J\omega` (3 numbers,
+    conserved by rotational symmetry :math:`R \mapsto QR`). Default: ``J = diag(2, 3, 4)``,
+    ``R0 = I``, ``ω0 = (0.1, 1.0, 0.1)``: close to a steady spin about the intermediate
+    axis, which is unstable (the tennis-racket flips).
+    """
+
+    J: jax.Array
+    R0: jax.Array
+    omega0: jax.Array
+
+    dof: ClassVar[int] = 0
+
+    def __init__(self, J=((2.0, 0, 0), (0, 3.0, 0), (0, 0, 4.0)), R0=None, omega0=(0.1, 1.0, 0.1)):
+        owner = "FreeRigidBody"
+        self.J = as_float_array("J", J, owner)
+        self.R0 = as_float_array("R0", np.eye(3) if R0 is None else R0, owner)
+        self.omega0 = as_float_array("omega0", omega0, owner)
+
+    def __check_init__(self):
+        owner = "FreeRigidBody"
+        check_inertia("J", self.J, owner)
+        _check_rotation("R0", self.R0, owner)
+        _check_shape("omega0", self.omega0, (3,), owner)
+        _check_finite("omega0", self.omega0, owner)
+
+    def kinetic(self, R, Omega, q, v):
+        return rotational_kinetic(self.J, Omega)
+
+    def potential(self, R, q):
+        return jnp.zeros((), R.dtype)
+
+    def default_state(self) -> RigidState:
+        empty = jnp.zeros((0,), jnp.float64)
+        return self.state_from_velocities(self.R0, self.omega0, empty, empty)
+
+    def invariants(self, state: RigidState) -> dict[str, jax.Array]:
+        return {
+            "energy": self.energy(state),
+            "angular_momentum": self.spatial_angular_momentum(state),
+        }
+
+
+class HeavyTop(AbstractRigidBodyModel):
+    r"""A heavy top, or 3D pendulum, about a fixed pivot:
+    :math:`L = \tfrac12\omega^\top J\omega + m g\, e_3^\top R\rho_c` (``e3`` down).
+
+    ``J`` is the inertia about the pivot and ``ρ_c`` the pivot-to-mass-centre vector in the
+    body frame. Invariants: energy and the vertical angular momentum :math:`e_3^\top R J
+    \omega` (symmetry: rotations about the vertical through the pivot). Defaults: the
+    paper's pendulum without its cart.
+    """
+
+    J: jax.Array
+    m: jax.Array
+    g: jax.Array
+    rho_c: jax.Array
+    R0: jax.Array
+    omega0: jax.Array
+
+    dof: ClassVar[int] = 0
+
+    def __init__(self, J=PAPER_J, m=1.0, g=9.81, rho_c=PAPER_RHO_C, R0=PAPER_R0,
+                 omega0=PAPER_OMEGA0):
+        owner = "HeavyTop"
+        self.J = as_float_array("J", J, owner)
+        self.m = as_float_array("m", m, owner)
+        self.g = as_float_array("g", g, owner)
+        self.rho_c = as_float_array("rho_c", rho_c, owner)
+        self.R0 = as_float_array("R0", R0, owner)
+        self.omega0 = as_float_array("omega0", omega0, owner)
+
+    def __check_init__(self):
+        owner = "HeavyTop"
+        check_inertia("J", self.J, owner)
+        check_positive("m", self.m, owner)
+        if is_concrete(self.g) and not (np.isfinite(self.g) and self.g >= 0):
+            raise ValueError(f"{owner}: g must be finite and >= 0, got {float(self.g)!r}")
+        _check_shape("rho_c", self.rho_c, (3,), owner)
+        _check_finite("rho_c", self.rho_c, owner)
+        _check_rotation("R0", self.R0, owner)
+        _check_shape("omega0", self.omega0, (3,), owner)
+        _check_finite("omega0", self.omega0, owner)
+
+    def kinetic(self, R, Omega, q, v):
+        return rotational_kinetic(self.J, Omega)
+
+    def potential(self, R, q):
+        return _gravity_potential(self.m, self.g, self.rho_c, R)
+
+    def default_state(self) -> RigidState:
+        empty = jnp.zeros((0,), jnp.float64)
+        return self.state_from_velocities(self.R0, self.omega0, empty, empty)
+
+    def invariants(self, state: RigidState) -> dict[str, jax.Array]:
+        return {
+            "energy": self.energy(state),
+            "angular_momentum_z": self.spatial_angular_momentum(state)[..., 2],
+        }
+
+
+class CarPendulum(AbstractRigidBodyModel):
+    r"""The paper's 3D car-pendulum (section 3): a rigid pendulum hinged on a cart that
+    moves freely in the horizontal plane. Configuration ``(R, q)``, ``q = (x, y)`` the cart
+    position; with ``v = q̇``, ``P = [e1 e2]ᵀ`` and ``e3`` down (eq. 38):
+
+    .. math::
+        L = \tfrac12 (m+M)|v|^2 + \tfrac12\omega^\top J\omega
+            + m\, v^\top P R(\omega\times\rho_c) + m g\, e_3^\top R\rho_c,
+
+    written for the engine as ``T = ½(m+M)|v|² + ½ tr(Ω J_d Ωᵀ) + m vᵀ P R Ω ρ_c``.
+    Momenta (eq. 39): ``μ = Jω + m hat(ρ_c) Rᵀ Pᵀ v``, ``p = (m+M) v + m P R (ω × ρ_c)``.
+
+    Invariants: energy; the cart's horizontal momentum ``p`` (translations of the cart);
+    the vertical angular momentum about the origin, ``e3·(R μ) + x p_y − y p_x``
+    (rotations about the vertical axis through the origin move the cart and the pendulum
+    together). Defaults: the paper's parameters and initial state, ``g = 9.81``.
+    """
+
+    m: jax.Array
+    M: jax.Array
+    g: jax.Array
+    rho_c: jax.Array
+    J: jax.Array
+    q0: jax.Array
+    v0: jax.Array
+    R0: jax.Array
+    omega0: jax.Array
+
+    dof: ClassVar[int] = 2
+
+    def __init__(self, m=1.0, M=1.0, g=9.81, rho_c=PAPER_RHO_C, J=PAPER_J,
+                 q0=(-0.125, -0.0125), v0=(0.525, -0.0125), R0=PAPER_R0, omega0=PAPER_OMEGA0):
+        owner = "CarPendulum"
+        self.m = as_float_array("m", m, owner)
+        self.M = as_float_array("M", M, owner)
+        self.g = as_float_array("g", g, owner)
+        self.rho_c = as_float_array("rho_c", rho_c, owner)
+        self.J = as_float_array("J", J, owner)
+        self.q0 = as_float_array("q0", q0, owner)
+        self.v0 = as_float_array("v0", v0, owner)
+        self.R0 = as_float_array("R0", R0, owner)
+        self.omega0 = as_float_array("omega0", omega0, owner)
+
+    def __check_init__(self):
+        owner = "CarPendulum"
+        check_positive("m", self.m, owner)
+        check_positive("M", self.M, owner)
+        if is_concrete(self.g) and not (np.isfinite(self.g) and self.g >= 0):
+            raise ValueError(f"{owner}: g must be finite and >= 0, got {float(self.g)!r}")
+        check_inertia("J", self.J, owner)
+        for name, shape in (("rho_c", (3,)), ("q0", (2,)), ("v0", (2,)), ("omega0", (3,))):
+            _check_shape(name, getattr(self, name), shape, owner)
+            _check_finite(name, getattr(self, name), owner)
+        _check_rotation("R0", self.R0, owner)
+
+    def kinetic(self, R, Omega, q, v):
+        coupling = self.m * jnp.dot(v, (R @ (Omega @ self.rho_c))[:2])
+        return 0.5 * (self.m + self.M) * jnp.dot(v, v) + rotational_kinetic(self.J, Omega) + (
+            coupling
+        )
+
+    def potential(self, R, q):
+        return _gravity_potential(self.m, self.g, self.rho_c, R)
+
+    def default_state(self) -> RigidState:
+        return self.state_from_velocities(self.R0, self.omega0, self.q0, self.v0)
+
+    def invariants(self, state: RigidState) -> dict[str, jax.Array]:
+        x, y = state.q[..., 0], state.q[..., 1]
+        px, py = state.p[..., 0], state.p[..., 1]
+        return {
+            "energy": self.energy(state),
+            "momentum": state.p,
+            "angular_momentum_z": self.spatial_angular_momentum(state)[..., 2] + x * py - y * px,
+        }
+
+    def pendulum_centre(self, state: RigidState) -> jax.Array:
+        """Inertial position of the pendulum's mass centre, ``(x, y, 0) + R ρ_c``."""
+        cart = jnp.concatenate([state.q, jnp.zeros_like(state.q[..., :1])], axis=-1)
+        return cart + jnp.einsum("...ij,j->...i", state.R, self.rho_c)
