@@ -75,6 +75,7 @@ __all__ = [
     "adjoint",
     "cayley",
     "cayley_inv",
+    "cayley_minus_identity",
     "dcayley",
     "dcayley_inv",
     "dcayley_left",
@@ -84,6 +85,7 @@ __all__ = [
     "dexp_left",
     "dexp_left_inv",
     "exp",
+    "exp_minus_identity",
     "hat",
     "is_rotation",
     "log",
@@ -268,6 +270,20 @@ def exp(w: Any) -> jax.Array:
     return _eye_like(w) + a * hat(w) + b * _hat_sq(w)
 
 
+def exp_minus_identity(w: Any) -> jax.Array:
+    r""":math:`\exp(w) - I` computed without cancellation, ``(..., 3) -> (..., 3, 3)``.
+
+    For a small rotation the entries of :math:`\exp(w) - I` are :math:`O(|w|)`, while
+    ``exp(w) - I`` evaluated in floating point carries the absolute round-off of the unit
+    diagonal (:math:`\sim 10^{-16}`), i.e. a relative error :math:`\sim 10^{-16}/|w|`.
+    Variational integrators divide this difference by the step ``h`` (a velocity), so they
+    use this form.
+    """
+    w = _as_float(w)
+    t2 = _theta_sq(w)
+    return _sinc(t2)[..., None, None] * hat(w) + _one_minus_cos(t2)[..., None, None] * _hat_sq(w)
+
+
 def log(R: Any) -> jax.Array:
     r"""Logarithm :math:`SO(3) \to \mathfrak{so}(3)`, ``(..., 3, 3) -> (..., 3)``, with
     :math:`|w| \in [0, \pi]`.
@@ -364,6 +380,14 @@ def cayley(w: Any) -> jax.Array:
     w = _as_float(w)
     k = (4.0 / (4.0 + _theta_sq(w)))[..., None, None]
     return _eye_like(w) + k * (hat(w) + 0.5 * _hat_sq(w))
+
+
+def cayley_minus_identity(w: Any) -> jax.Array:
+    r""":math:`\operatorname{cay}(w) - I = \frac{4}{4+|w|^2}(\hat w + \tfrac12\hat w^2)`,
+    computed without cancellation (see :func:`exp_minus_identity`)."""
+    w = _as_float(w)
+    k = (4.0 / (4.0 + _theta_sq(w)))[..., None, None]
+    return k * (hat(w) + 0.5 * _hat_sq(w))
 
 
 def cayley_inv(R: Any) -> jax.Array:

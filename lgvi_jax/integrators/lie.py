@@ -81,18 +81,25 @@ class AbstractLieVI(AbstractIntegrator):
     implicit: ClassVar[bool] = True
 
     # --- the method ---------------------------------------------------------------------
-    def tau(self, w: jax.Array) -> jax.Array:
-        """The map ``w -> F = R_kᵀ R_{k+1}``."""
+    def tau_minus_identity(self, w: jax.Array) -> jax.Array:
+        """``τ(w) − I`` for the map ``w -> F = R_kᵀ R_{k+1}`` (without cancellation)."""
         raise NotImplementedError
 
-    def discrete_lagrangian(self, model, R0, R1, w, q0, q1, h) -> jax.Array:
-        """``G(R_k, R_{k+1}, w, q_k, q_{k+1})`` for step ``h``."""
+    def discrete_lagrangian(self, model, h, R0, R1, FmI, w, q0, q1, u) -> jax.Array:
+        """``G`` for step ``h``. The arguments describe one step redundantly, so that no
+        method has to recompute a small difference of large numbers: rotations ``R0, R1``,
+        ``FmI = R0ᵀR1 − I``, the Hamel coordinate ``w``, positions ``q0, q1`` and the mean
+        velocity ``u = (q1 − q0)/h``."""
         raise NotImplementedError
 
     def variations(self, w: jax.Array) -> tuple[jax.Array, jax.Array]:
         """``(A, B)`` with ``δw = A η_{k+1} − B η_k``; unused if ``G`` does not depend on
         ``w``."""
         raise NotImplementedError
+
+    def tau(self, w: jax.Array) -> jax.Array:
+        """The map ``w -> F = R_kᵀ R_{k+1}``."""
+        return jnp.eye(3, dtype=w.dtype) + self.tau_minus_identity(w)
 
     # --- the engine ---------------------------------------------------------------------
     def check_model(self, model) -> None:
@@ -102,34 +109,44 @@ class AbstractLieVI(AbstractIntegrator):
                 f"{type(model).__name__}; Euclidean models use rk4, gl4, verlet, galerkin4"
             )
 
-    def _gradients(self, model, R0, R1, w, q0, q1, h):
-        """``(g_k, g_{k+1}, g_w, ∂G/∂q_k, ∂G/∂q_{k+1})`` (left-trivialised in R)."""
-        eye = jnp.eye(3, dtype=R0.dtype)
+    def gradients(self, model, R0, w, q0, u, h):
+        """Derivatives of ``G`` for the step ``R1 = R0 τ(w)``, ``q1 = q0 + h u``:
+        ``(g_k, g_{k+1}, ∂G/∂q_k, ∂G/∂q_{k+1}, g_w)``, the rotation derivatives
+        left-trivialised, each taken with the other end point held fixed.
 
-        def G(e0, e1, w, q0, q1):
+        The perturbed step is passed to :meth:`discrete_lagrangian` consistently to first
+        order (``R0 → R0(I + η̂0)``, ``R1 → R1(I + η̂1)``, hence ``F − I → F − I − η̂0 F +
+        F η̂1``; ``q0 → q0 + d0``, ``q1 → q1 + d1``, hence ``u → u + (d1 − d0)/h``), which
+        gives exact first derivatives.
+        """
+        eye = jnp.eye(3, dtype=R0.dtype)
+        FmI = self.tau_minus_identity(w)
+        F = eye + FmI
+        R1 = R0 @ F
+        q1 = q0 + h * u
+
+        def G(e0, e1, d0, d1, w):
+            E0, E1 = so3.hat(e0), so3.hat(e1)
             return self.discrete_lagrangian(
-                model, R0 @ (eye + so3.hat(e0)), R1 @ (eye + so3.hat(e1)), w, q0, q1, h
+                model, h, R0 @ (eye + E0), R1 @ (eye + E1), FmI - E0 @ F + F @ E1, w,
+                q0 + d0, q1 + d1, u + (d1 - d0) / h,
             )
 
-        zero = jnp.zeros(3, R0.dtype)
-        return jax.grad(G, argnums=(0, 1, 2, 3, 4))(zero, zero, w, q0, q1)
+        z3, zq = jnp.zeros(3, R0.dtype), jnp.zeros_like(q0)
+        return jax.grad(G, argnums=(0, 1, 2, 3, 4))(z3, z3, zq, zq, w)
 
-    def legendre(self, model, R0, w, q0, q1, h):
+    def legendre(self, model, R0, w, q0, u, h):
         """Both discrete Legendre transforms ``(μ_k, p_k, μ_{k+1}, p_{k+1})`` of the step
-        ``(R_k, q_k) -> (R_k τ(w), q_{k+1})``."""
-        R1 = R0 @ self.tau(w)
-        g0, g1, gw, gq0, gq1 = self._gradients(model, R0, R1, w, q0, q1, h)
+        ``(R_k, q_k) -> (R_k τ(w), q_k + h u)``."""
+        g0, g1, gq0, gq1, gw = self.gradients(model, R0, w, q0, u, h)
         A, B = self.variations(w)
         return B.T @ gw - g0, -gq0, g1 + A.T @ gw, gq1
 
     def _residual(self, z, args):
         model, R0, mu0, q0, p0, h = args
         xi, u = z
-        w, q1 = h * xi, q0 + h * u
-        R1 = R0 @ self.tau(w)
-        g0, _, gw, gq0, _ = self._gradients(model, R0, R1, w, q0, q1, h)
-        _, B = self.variations(w)
-        return (B.T @ gw - g0 - mu0, -gq0 - p0)
+        mu, p, _, _ = self.legendre(model, R0, h * xi, q0, u, h)
+        return (mu - mu0, p - p0)
 
     def step(self, model, state: RigidState, dt):
         R0, mu0, q0, p0 = state.R, state.mu, state.q, state.p
@@ -137,15 +154,16 @@ class AbstractLieVI(AbstractIntegrator):
         guess = model.velocities(R0, mu0, q0, p0)
         sol = newton_solve(self._residual, guess, (model, R0, mu0, q0, p0, h), self.newton)
         xi, u = sol.value
-        w, q1 = h * xi, q0 + h * u
+        w = h * xi
         R1 = R0 @ self.tau(w)
-        _, g1, gw, gq0, gq1 = self._gradients(model, R0, R1, w, q0, q1, h)
+        q1 = q0 + h * u
+        _, g1, gq0, gq1, gw = self.gradients(model, R0, w, q0, u, h)
         A, _ = self.variations(w)
         mu1 = g1 + A.T @ gw
         # p_{k+1} = ∂G/∂q_{k+1} = p_k + (∂G/∂q_k + ∂G/∂q_{k+1}) at the solution; the sum is
-        # exactly 0 in floating point when G depends on q only through q_{k+1} − q_k, so
-        # translation momentum is conserved to the last bit instead of accumulating the
-        # Newton residual.
+        # exactly 0 in floating point when G depends on q only through u (translation
+        # invariance), so that momentum is conserved to the last bit instead of
+        # accumulating the Newton residual.
         p1 = p0 + (gq0 + gq1)
         return RigidState(R=R1, mu=mu1, q=q1, p=p1), StepInfo.from_solution(sol)
 
@@ -163,14 +181,11 @@ class LGVI(AbstractLieVI):
     name: ClassVar[str] = "lgvi"
     symplectic: ClassVar[bool] = True
 
-    def tau(self, w):
-        return so3.cayley(w)
+    def tau_minus_identity(self, w):
+        return so3.cayley_minus_identity(w)
 
-    def discrete_lagrangian(self, model, R0, R1, w, q0, q1, h):
-        F = R0.T @ R1
-        Omega = (F - jnp.eye(3, dtype=F.dtype)) / h
-        v = (q1 - q0) / h
-        T = model.kinetic(R0, Omega, q0, v)
+    def discrete_lagrangian(self, model, h, R0, R1, FmI, w, q0, q1, u):
+        T = model.kinetic(R0, FmI / h, q0, u)
         return h * (T - 0.5 * model.potential(R0, q0) - 0.5 * model.potential(R1, q1))
 
     def variations(self, w):
@@ -210,13 +225,14 @@ class HamelVI(AbstractLieVI):
         # Exactly variational only with exact variations (see the module docstring).
         return self.variation == "exact"
 
-    def tau(self, w):
-        return so3.exp(w) if self.map == "exp" else so3.cayley(w)
+    def tau_minus_identity(self, w):
+        if self.map == "exp":
+            return so3.exp_minus_identity(w)
+        return so3.cayley_minus_identity(w)
 
-    def discrete_lagrangian(self, model, R0, R1, w, q0, q1, h):
+    def discrete_lagrangian(self, model, h, R0, R1, FmI, w, q0, q1, u):
         Xi = so3.hat(w / h)
-        v = (q1 - q0) / h
-        T = 0.5 * (model.kinetic(R0, Xi, q0, v) + model.kinetic(R1, Xi, q1, v))
+        T = 0.5 * (model.kinetic(R0, Xi, q0, u) + model.kinetic(R1, Xi, q1, u))
         return h * (T - 0.5 * model.potential(R0, q0) - 0.5 * model.potential(R1, q1))
 
     def variations(self, w):
