@@ -174,6 +174,23 @@ def test_exp_and_jacobians_match_high_precision_reference():
     check(jso3.dexp_left_inv(w), EYE - 0.5 * W + d * WW)
 
 
+def test_minus_identity_forms_have_small_relative_error():
+    """exp(w) − I and cay(w) − I without cancellation: relative error at round-off for tiny
+    angles, where ``exp(w) − I`` computed naively would keep only ~16 − |log10 θ| digits."""
+    w = REF_THETAS[:, None] * AXIS
+    W = np.stack([hat_np(x) for x in w])
+    a, b = (np.array(x)[:, None, None]
+            for x in list(zip(*[_reference_coefficients(t) for t in REF_THETAS], strict=True))[:2])
+    exact = a * W + b * (W @ W)
+    scale = REF_THETAS[:, None, None]  # entries of exp(w) − I are O(theta)
+    assert np.all(np.abs(np.asarray(jso3.exp_minus_identity(w)) - exact) <= 4e-16 * scale)
+    k = (4.0 / (4.0 + REF_THETAS**2))[:, None, None]
+    exact_cay = k * (W + 0.5 * (W @ W))
+    assert np.all(np.abs(np.asarray(jso3.cayley_minus_identity(w)) - exact_cay) <= 4e-16 * scale)
+    np.testing.assert_allclose(jso3.exp_minus_identity(w) + EYE, jso3.exp(w), atol=2e-16)
+    np.testing.assert_allclose(jso3.cayley_minus_identity(w) + EYE, jso3.cayley(w), atol=2e-16)
+
+
 def test_coefficient_functions_match_high_precision_reference():
     """The scalar coefficients themselves (private helpers), on both sides of theta = 0.1.
 
