@@ -26,7 +26,8 @@ def check_positive(name: str, value: Any, owner: str) -> None:
     if not np.issubdtype(arr.dtype, np.number):
         raise ValueError(f"{owner}: {name} must be a number, got {value!r}")
     if not np.all(np.isfinite(arr)) or not np.all(arr > 0):
-        raise ValueError(f"{owner}: {name} must be finite and > 0, got {value!r}")
+        shown = arr.tolist() if arr.ndim else arr.item()
+        raise ValueError(f"{owner}: {name} must be finite and > 0, got {shown!r}")
 
 
 def check_float64_finite(name: str, tree: Any, owner: str) -> None:

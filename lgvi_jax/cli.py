@@ -161,7 +161,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         "save_every": args.save_every,
         "parameters": {k: v.tolist() for k, v in overrides.items()},
     }
-    arrays = scene.arrays(traj)
+    arrays = scene.arrays(model, traj)
     arrays["result"] = np.asarray(traj.result)
     arrays["newton_iterations"] = np.asarray(traj.newton_steps)
     arrays["config_json"] = np.asarray(json.dumps(config))

@@ -81,6 +81,22 @@ def summarize(traj: Any) -> dict[str, Any]:
         "newton_iterations_mean": float(np.asarray(traj.newton_mean)),
         "newton_iterations_max": int(np.asarray(traj.newton_max)),
     }
+    # Momentum maps and other invariants: the largest deviation from the initial value
+    # (max over components), e.g. "momentum_drift_max", "angular_momentum_z_drift_max".
+    for name, values in traj.invariants.items():
+        if name == "energy":
+            continue
+        values = np.asarray(values, dtype=np.float64)
+        dev = np.abs(values - values[:1]).reshape(len(values), -1)
+        ok = np.all(np.isfinite(dev), axis=1)
+        out[f"{name}_drift_max"] = float(np.max(dev[ok])) if ok.any() else float("nan")
+    R = getattr(traj.state, "R", None)
+    if R is not None:
+        E = np.swapaxes(np.asarray(R), -1, -2) @ np.asarray(R) - np.eye(3)
+        orth = np.sqrt(np.sum(E * E, axis=(-2, -1)))
+        finite = np.isfinite(orth)
+        out["orthogonality_error_max"] = float(np.max(orth[finite])) if finite.any() else (
+            float("nan"))
     if code != RESULTS.successful:
         out["failed_step"] = int(np.asarray(traj.failed_step))
         out["failed_residual"] = float(np.asarray(traj.failed_residual))

@@ -11,10 +11,13 @@ import dataclasses
 from collections.abc import Callable, Mapping
 from typing import Any
 
+import jax
 import numpy as np
 
-from .integrators import EUCLIDEAN_METHODS, AbstractIntegrator
-from .models import HarmonicOscillator
+from . import so3
+from .integrators import EUCLIDEAN_METHODS, RIGID_METHODS, AbstractIntegrator
+from .models import CarPendulum, FreeRigidBody, HarmonicOscillator, HeavyTop
+from .models.rigid_bodies import PAPER_J, PAPER_OMEGA0, PAPER_R0, PAPER_RHO_C
 
 __all__ = ["SCENES", "Parameter", "Scene", "get_scene"]
 
@@ -38,7 +41,8 @@ class Scene:
     parameters: tuple[Parameter, ...]
     methods: Mapping[str, Callable[[], AbstractIntegrator]]
     make: Callable[[dict[str, np.ndarray]], tuple[Any, Any]]
-    arrays: Callable[[Any], dict[str, np.ndarray]]
+    #: ``arrays(model, trajectory)``: what ``lgvi-jax simulate`` saves, by name.
+    arrays: Callable[[Any, Any], dict[str, np.ndarray]]
 
     def parameter(self, name: str) -> Parameter:
         for p in self.parameters:
@@ -80,7 +84,7 @@ def _oscillator_make(values):
     return model, model.default_state()
 
 
-def _oscillator_arrays(traj) -> dict[str, np.ndarray]:
+def _oscillator_arrays(model, traj) -> dict[str, np.ndarray]:
     return {
         "t": np.asarray(traj.t),
         "q": np.asarray(traj.state.q)[:, 0],
@@ -88,6 +92,55 @@ def _oscillator_arrays(traj) -> dict[str, np.ndarray]:
         "energy": np.asarray(traj.energy),
     }
 
+
+def _flat(matrix) -> tuple[float, ...]:
+    return tuple(float(x) for x in np.ravel(matrix))
+
+
+def _rigid_arrays(model, traj) -> dict[str, np.ndarray]:
+    """What a rigid-body run saves: ``t``, ``R`` (n,3,3), body angular velocity ``omega``
+    and momentum ``mu`` (n,3), for a model with Euclidean part also ``q``, ``v``, ``p``
+    (n,dof), every invariant by name (``energy``, ``momentum``, ``angular_momentum_z``, ...)
+    and ``orthogonality_error`` ‖RᵀR − I‖_F (n,). Initial state first."""
+    state = traj.state
+    omega, v = jax.vmap(model.velocities)(state.R, state.mu, state.q, state.p)
+    out = {
+        "t": np.asarray(traj.t),
+        "R": np.asarray(state.R),
+        "omega": np.asarray(omega),
+        "mu": np.asarray(state.mu),
+    }
+    if model.dof:
+        out.update(q=np.asarray(state.q), v=np.asarray(v), p=np.asarray(state.p))
+    out.update({k: np.asarray(val) for k, val in traj.invariants.items()})
+    out["orthogonality_error"] = np.asarray(so3.orthogonality_error(state.R))
+    return out
+
+
+def _free_body_make(values):
+    model = FreeRigidBody(J=values["J"].reshape(3, 3), R0=values["R0"].reshape(3, 3),
+                          omega0=values["omega0"])
+    return model, model.default_state()
+
+
+def _heavy_top_make(values):
+    model = HeavyTop(J=values["J"].reshape(3, 3), m=values["m"][0], g=values["g"][0],
+                     rho_c=values["rho_c"], R0=values["R0"].reshape(3, 3),
+                     omega0=values["omega0"])
+    return model, model.default_state()
+
+
+def _car_pendulum_make(values):
+    model = CarPendulum(
+        m=values["m"][0], M=values["M"][0], g=values["g"][0], rho_c=values["rho_c"],
+        J=values["J"].reshape(3, 3), q0=values["q0"], v0=values["v0"],
+        R0=values["R0"].reshape(3, 3), omega0=values["omega0"],
+    )
+    return model, model.default_state()
+
+
+_R0_DOC = "initial attitude, body to inertial, 9 numbers row-major (must be in SO(3))"
+_J_DOC = "inertia about the pivot, 9 numbers row-major (symmetric, positive, triangle ineq.)"
 
 SCENES: dict[str, Scene] = {
     "oscillator": Scene(
@@ -103,6 +156,54 @@ SCENES: dict[str, Scene] = {
                                                      "gl6", "galerkin6")},
         make=_oscillator_make,
         arrays=_oscillator_arrays,
+    ),
+    "free-rigid-body": Scene(
+        name="free-rigid-body",
+        description="free rigid body, L = ω·Jω/2 on SO(3) (invariants: energy, R Jω)",
+        parameters=(
+            Parameter("J", 9, (2.0, 0, 0, 0, 3.0, 0, 0, 0, 4.0),
+                      "inertia, 9 numbers row-major (symmetric, positive, triangle ineq.)"),
+            Parameter("R0", 9, _flat(np.eye(3)), _R0_DOC),
+            Parameter("omega0", 3, (0.1, 1.0, 0.1), "initial body angular velocity"),
+        ),
+        methods=RIGID_METHODS,
+        make=_free_body_make,
+        arrays=_rigid_arrays,
+    ),
+    "heavy-top": Scene(
+        name="heavy-top",
+        description="heavy top / 3D pendulum about a fixed pivot, e3 down (invariants: "
+        "energy, vertical angular momentum)",
+        parameters=(
+            Parameter("J", 9, _flat(PAPER_J), _J_DOC),
+            Parameter("m", 1, (1.0,), "mass (> 0)"),
+            Parameter("g", 1, (9.81,), "gravity (>= 0), along e3 = down"),
+            Parameter("rho_c", 3, PAPER_RHO_C, "pivot to mass centre, body frame"),
+            Parameter("R0", 9, _flat(PAPER_R0), _R0_DOC),
+            Parameter("omega0", 3, PAPER_OMEGA0, "initial body angular velocity"),
+        ),
+        methods=RIGID_METHODS,
+        make=_heavy_top_make,
+        arrays=_rigid_arrays,
+    ),
+    "car-pendulum": Scene(
+        name="car-pendulum",
+        description="the paper's 3D car-pendulum on SO(3) x R^2 (invariants: energy, cart "
+        "momentum p, vertical angular momentum about the origin)",
+        parameters=(
+            Parameter("m", 1, (1.0,), "pendulum mass (> 0)"),
+            Parameter("M", 1, (1.0,), "cart mass (> 0)"),
+            Parameter("g", 1, (9.81,), "gravity (>= 0), along e3 = down"),
+            Parameter("rho_c", 3, PAPER_RHO_C, "pivot to pendulum mass centre, body frame"),
+            Parameter("J", 9, _flat(PAPER_J), _J_DOC),
+            Parameter("q0", 2, (-0.125, -0.0125), "initial cart position (x, y)"),
+            Parameter("v0", 2, (0.525, -0.0125), "initial cart velocity"),
+            Parameter("R0", 9, _flat(PAPER_R0), _R0_DOC),
+            Parameter("omega0", 3, PAPER_OMEGA0, "initial body angular velocity"),
+        ),
+        methods=RIGID_METHODS,
+        make=_car_pendulum_make,
+        arrays=_rigid_arrays,
     ),
 }
 

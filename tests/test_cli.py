@@ -169,3 +169,78 @@ def test_console_script_is_declared_and_runs(tmp_path):
         capture_output=True, text=True, check=False)
     assert proc.returncode == 2
     assert "Traceback" not in proc.stderr and "--dt must be" in proc.stderr
+
+
+# ------------------------------------------------------------------- rigid bodies
+
+
+def test_simulate_car_pendulum_npz_and_json(tmp_path, capsys):
+    """The issue's file keys and shapes, initial state first, and the JSON extras."""
+    out = tmp_path / "cp.npz"
+    code, stdout, _ = run_cli(
+        ["simulate", "car-pendulum", "--method", "hamel-cayley", "--dt", "0.005",
+         "--t-final", "1", "--save-every", "10", "--set", "v0=0.8,-0.3",
+         "--set", "omega0=1,-0.5,3", "--out", str(out), "--json"], capsys)
+    assert code == 0
+    summary = json.loads(stdout)
+    data = np.load(out)
+    n = 21
+    shapes = {"t": (n,), "R": (n, 3, 3), "omega": (n, 3), "q": (n, 2), "v": (n, 2),
+              "energy": (n,), "momentum": (n, 2), "angular_momentum_z": (n,)}
+    for key, shape in shapes.items():
+        assert data[key].shape == shape, key
+    np.testing.assert_array_equal(data["R"][0], [[1, 0, 0], [0, 0, -1], [0, 1, 0]])
+    np.testing.assert_allclose(data["omega"][0], [1.0, -0.5, 3.0], rtol=1e-14)
+    np.testing.assert_allclose(data["v"][0], [0.8, -0.3], rtol=1e-14)
+    np.testing.assert_allclose(data["q"][0], [-0.125, -0.0125], rtol=0)
+    # The saved invariants are the conserved ones (hamel-cayley: exactly).
+    assert np.abs(data["momentum"][0]).max() > 0.1
+    np.testing.assert_allclose(data["momentum"], data["momentum"][:1].repeat(n, 0), atol=1e-13)
+    np.testing.assert_allclose(data["angular_momentum_z"], data["angular_momentum_z"][0],
+                               atol=1e-12)
+    for key in ("momentum_drift_max", "angular_momentum_z_drift_max",
+                "orthogonality_error_max", "newton_iterations_mean", "newton_iterations_max",
+                "energy_error_max", "wall_time_s", "steps_per_second"):
+        assert key in summary, key
+    assert summary["momentum_drift_max"] <= 1e-13
+    assert summary["orthogonality_error_max"] < 1e-13
+    assert 1 <= summary["newton_iterations_mean"] <= 4
+    assert summary["orthogonality_error_max"] == pytest.approx(
+        float(np.max(data["orthogonality_error"])), rel=1e-12)
+
+
+@pytest.mark.parametrize("system, key", [("free-rigid-body", "angular_momentum"),
+                                         ("heavy-top", "angular_momentum_z")])
+def test_simulate_other_rigid_systems(tmp_path, capsys, system, key):
+    out = tmp_path / f"{system}.npz"
+    code, stdout, _ = run_cli(
+        ["simulate", system, "--method", "lgvi", "--dt", "0.01", "--t-final", "1",
+         "--out", str(out), "--json"], capsys)
+    assert code == 0
+    data = np.load(out)
+    assert data["R"].shape == (101, 3, 3) and data["omega"].shape == (101, 3)
+    assert json.loads(stdout)[f"{key}_drift_max"] < 1e-12
+
+
+@pytest.mark.parametrize(
+    "extra, message",
+    [
+        (["--set", "R0=1,0,0,0,1,0,0,0,1.1"], "R0 is not in SO(3)"),
+        (["--set", "R0=1,0,0,0,1,0,0,0,-1"], "R0 is not in SO(3)"),  # a reflection
+        (["--set", "J=1,0,0,0,1,0,0,0,3"], "J is not a physical inertia"),
+        (["--set", "J=1,0.5,0,0,1,0,0,0,1"], "J must be symmetric"),
+        (["--set", "J=-1,0,0,0,1,0,0,0,1"], "J is not a physical inertia"),
+        (["--set", "rho_c=1,2"], "rho_c takes 3 number"),
+        (["--set", "m=0"], "m must be finite and > 0"),
+        (["--set", "omega=1,2,3"], "unknown parameter 'omega'"),
+        (["--method", "gl6"], "not available for car-pendulum"),
+    ],
+)
+def test_car_pendulum_bad_input(tmp_path, capsys, extra, message):
+    out = tmp_path / "x.npz"
+    args = ["simulate", "car-pendulum", "--method", "lgvi", "--dt", "0.01", "--t-final", "1",
+            "--out", str(out), *extra]
+    code, _, err = run_cli(args, capsys)
+    assert code == 2
+    assert message in err and "Traceback" not in err
+    assert not out.exists()
