@@ -190,7 +190,7 @@ class AbstractRigidBodyModel(eqx.Module):
     def spatial_angular_momentum(self, state: RigidState) -> jax.Array:
         """``R μ``: the body's angular momentum about the body-frame origin, in the
         inertial frame (the momentum map of rotations ``R -> Q R``)."""
-        return state.R @ state.mu
+        return jnp.einsum("...ij,...j->...i", state.R, state.mu)
 
     def invariants(self, state: RigidState) -> dict[str, jax.Array]:
         """Quantities conserved by the exact flow, by name (at least ``energy``)."""
