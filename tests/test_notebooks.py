@@ -29,3 +29,9 @@ def test_notebook_executes(path, tmp_path):
                   for line in text.splitlines() if line.startswith(("autodiff", "exact"))}
         assert values["autodiff"] == pytest.approx(values["exact"], rel=1e-6)
         assert "failed: non-finite values" in text
+    if path.name == "car_pendulum.ipynb":
+        values = {line.split(":")[0].strip(): float(line.split(":")[1])
+                  for line in text.splitlines() if line.startswith(("autodiff", "central"))}
+        # Central difference with step 1e-5: truncation ~1e-10, cancellation ~1e-11.
+        assert values["autodiff"] == pytest.approx(values["central difference"], rel=1e-6)
+        assert "hamel-exact" in text and "all 4000 steps succeeded" in text
