@@ -22,6 +22,12 @@ METHOD_STYLE: dict[str, dict[str, Any]] = {
     "galerkin4": {"color": "tab:green", "linestyle": "-."},
     "galerkin6": {"color": "tab:olive", "linestyle": "-."},
     "verlet": {"color": "tab:purple", "linestyle": "-"},
+    "reference": {"color": "black", "linestyle": ":", "linewidth": 1.2},
+    "lgvi": {"color": "tab:blue", "linestyle": "-"},
+    "hamel": {"color": "tab:orange", "linestyle": "--"},
+    "hamel-cayley": {"color": "tab:green", "linestyle": "-."},
+    "hamel-exact": {"color": "tab:purple", "linestyle": ":"},
+    "hamel-cayley-exact": {"color": "tab:brown", "linestyle": ":"},
 }
 
 

@@ -19,6 +19,7 @@ __all__ = ["STAGES", "reproduce"]
 #: (name, module): each module has ``run(out_dir, quick=False, log=print) -> dict``.
 STAGES: list[tuple[str, str]] = [
     ("oscillator", "lgvi_jax.experiments.oscillator"),
+    ("car_pendulum", "lgvi_jax.experiments.car_pendulum"),
 ]
 
 

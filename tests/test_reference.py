@@ -166,7 +166,8 @@ def test_rk4_with_tiny_step_matches_reference(case):
 @eqx.filter_jit
 def advance(model, method, state, h, n):
     """``n`` steps (a run-time value: one compilation per method for all steps)."""
-    return jax.lax.fori_loop(0, n, lambda _, s: method.step(model, s, h)[0], state)
+    return jax.lax.fori_loop(0, jnp.asarray(n, jnp.int32),
+                             lambda _, s: method.step(model, s, h)[0], state)
 
 
 @eqx.filter_jit
@@ -191,7 +192,7 @@ def orders(case):
             n = round(T_FINAL / h)
             state, errors = s0, []
             for _ in range(10):  # the energy error at ten times in (0, T]
-                state = advance(model, method, state, jnp.float64(h), n // 10)
+                state = advance(model, method, state, jnp.float64(h), jnp.int32(n // 10))
                 errors.append(abs(float(energy_of(model, state)) - E0))
             pos.append(float(np.linalg.norm(np.asarray(model.pendulum_centre(state))
                                             - centre_ref)))
