@@ -1,4 +1,4 @@
-"""Command-line interface: ``lgvi-jax {simulate, reproduce, info}``.
+"""Command-line interface: ``lgvi-jax {simulate, sweep, reproduce, info}``.
 
 A thin layer over the library. Bad input exits with status 2 and a one-line message (no
 traceback); a run whose integration fails still writes its output (with the failure
@@ -206,6 +206,92 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
     return 0
 
 
+def _csv_list(text: str, convert, option: str) -> list:
+    items = [t.strip() for t in text.split(",") if t.strip()]
+    try:
+        return [convert(t) for t in items]
+    except ValueError:
+        raise UsageError(f"{option} {text!r}: expected a comma-separated list") from None
+
+
+def configure_devices(spec: str | None) -> None:
+    """Expose host devices to XLA before JAX starts: ``auto`` = one per core (a no-op
+    when JAX already runs, e.g. in tests), an integer = that many."""
+    import jax
+
+    if spec is None:
+        return
+    if spec == "auto":
+        n = os.cpu_count() or 1
+    else:
+        try:
+            n = int(spec)
+        except ValueError:
+            raise UsageError(f"--devices must be 'auto' or an integer >= 1, got {spec!r}") from None
+        if n < 1:
+            raise UsageError(f"--devices must be 'auto' or an integer >= 1, got {spec!r}")
+    try:
+        jax.config.update("jax_num_cpu_devices", n)
+    except RuntimeError:  # the backend is already initialised: keep its devices
+        if spec != "auto":
+            raise UsageError("--devices: JAX is already initialised in this process; set "
+                             "it before the first computation") from None
+
+
+def cmd_sweep(args: argparse.Namespace) -> int:
+    configure_devices(args.devices)
+    import jax
+
+    from .scenes import get_scene
+    from .sweep import SweepConfig, SweepError, run_sweep
+
+    scene = get_scene(args.system)
+    overrides = parse_set(args.set)
+    config = SweepConfig(
+        system=scene.name,
+        methods=tuple(_csv_list(args.method, str, "--method")),
+        dts=tuple(_csv_list(args.dt, float, "--dt")),
+        t_final=args.t_final, n=args.n, perturb=args.perturb, seed=args.seed,
+        chunk=args.chunk, sample_every=args.sample_every,
+        parameters={k: v.tolist() for k, v in overrides.items()},
+    )
+    try:
+        config.validate(list(scene.methods))
+        model, state0 = scene.build(overrides)
+    except (SweepError, ValueError) as err:
+        raise UsageError(str(err)) from None
+    quiet = args.json
+
+    def log(msg: str) -> None:
+        if not quiet:
+            print(msg, file=sys.stderr)
+
+    devices = jax.devices()
+    log(f"{scene.name}: {config.n} initial conditions x {len(config.methods)} method(s) x "
+        f"{len(config.dts)} step(s) on {len(devices)} {devices[0].platform} device(s)")
+    try:
+        summary = run_sweep(config, model, state0, scene.method, Path(args.out),
+                            resume=args.resume, progress=not quiet, log=log)
+    except SweepError as err:
+        raise UsageError(str(err)) from None
+    except KeyboardInterrupt:
+        print(f"{PROG} sweep: interrupted; finished chunks are kept in {args.out}: rerun "
+              "the same command with --resume to continue", file=sys.stderr)
+        return 130
+    failed = sum(row["failed"] for row in summary["rows"])
+    if args.json:
+        print(json.dumps({**summary, "out": str(args.out)}))
+    else:
+        print((Path(args.out) / "summary.md").read_text(), end="")
+        print(f"wrote {args.out}/ (manifest.json, chunks/, trajectories.csv, summary.json, "
+              f"summary.md, energy_error.png); {summary['chunks_computed']} chunk(s) "
+              f"computed, {summary['chunks_skipped']} resumed")
+    if failed:
+        print(f"{PROG} sweep: {failed} trajectories failed (flagged in trajectories.csv)",
+              file=sys.stderr)
+    return 0
+
+
 def cmd_info(args: argparse.Namespace) -> int:
     from .scenes import SCENES
 
@@ -250,6 +336,38 @@ def build_parser() -> argparse.ArgumentParser:
     rep.add_argument("--force", action="store_true",
                      help="recompute stages whose results already exist in the folder")
     rep.set_defaults(func=cmd_reproduce)
+
+    sw = sub.add_parser(
+        "sweep", help="batched energy-drift sweep over perturbed initial conditions",
+        description="Integrate N initial conditions drawn around the system's default "
+        "state with every method and step; per-trajectory structure metrics go to OUT "
+        "chunk by chunk (resumable with --resume).")
+    sw.add_argument("system", choices=list(SCENES), help="the system to integrate")
+    sw.add_argument("--method", required=True, metavar="METHOD[,METHOD...]",
+                    help="integrators, comma-separated (see `lgvi-jax info`)")
+    sw.add_argument("--dt", required=True, metavar="DT[,DT...]",
+                    help="step sizes, comma-separated; t-final must be a multiple of each")
+    sw.add_argument("--t-final", required=True, type=_float, help="final time")
+    sw.add_argument("--n", required=True, type=int, help="number of initial conditions (>= 1)")
+    sw.add_argument("--perturb", type=_float, default=0.01, metavar="EPS",
+                    help="relative size of the velocity perturbation and angle of the "
+                    "random rotation (>= 0, default 0.01)")
+    sw.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    sw.add_argument("--out", required=True, metavar="DIR", help="output folder")
+    sw.add_argument("--resume", action="store_true",
+                    help="continue an interrupted sweep in DIR, skipping finished chunks")
+    sw.add_argument("--chunk", type=int, default=256, metavar="C",
+                    help="trajectories per chunk written to disk (default 256)")
+    sw.add_argument("--sample-every", type=int, default=1, metavar="K",
+                    help="measure the invariants every K steps and at the end (default 1)")
+    sw.add_argument("--devices", default="auto", metavar="auto|N",
+                    help="host devices to expose on a CPU-only machine (default auto: one "
+                    "per core); the batch is sharded over all devices")
+    sw.add_argument("--set", action="append", metavar="NAME=V1[,V2...]",
+                    help="override a parameter or the central initial value (repeatable)")
+    sw.add_argument("--json", action="store_true",
+                    help="print the summary as one JSON object (no progress bar)")
+    sw.set_defaults(func=cmd_sweep)
 
     info = sub.add_parser("info", help="list systems, methods and parameters")
     info.set_defaults(func=cmd_info)

@@ -104,6 +104,7 @@ class Newton(eqx.Module):
     max_steps: int = eqx.field(static=True, default=20)
     chord: bool = eqx.field(static=True, default=False)
     linear_solver: str = eqx.field(static=True, default="unrolled")
+    unroll: int = eqx.field(static=True, default=0)
 
     def __check_init__(self):
         if self.linear_solver not in _LINEAR_SOLVERS:
@@ -233,8 +234,17 @@ def _iterate(f, y0, solver: Newton):
     def cond(carry):
         return carry[2] < 0
 
-    init = (y0, zero, jnp.asarray(-1, jnp.int32), jnp.asarray(jnp.inf, dtype))
-    y, k, result, res = jax.lax.while_loop(cond, body, init)
+    def masked_body(carry):
+        # An unrolled iteration that leaves a finished solve untouched, so that the iterates
+        # are exactly those of the while loop.
+        new = body(carry)
+        running = cond(carry)
+        return jax.tree.map(lambda a, b: jnp.where(running, a, b), new, carry)
+
+    carry = (y0, zero, jnp.asarray(-1, jnp.int32), jnp.asarray(jnp.inf, dtype))
+    for _ in range(min(solver.unroll, solver.max_steps)):
+        carry = masked_body(carry)
+    y, k, result, res = jax.lax.while_loop(cond, body, carry)
     return y, result, k, res
 
 

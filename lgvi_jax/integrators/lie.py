@@ -114,26 +114,29 @@ class AbstractLieVI(AbstractIntegrator):
         ``(g_k, g_{k+1}, ∂G/∂q_k, ∂G/∂q_{k+1}, g_w)``, the rotation derivatives
         left-trivialised, each taken with the other end point held fixed.
 
-        The perturbed step is passed to :meth:`discrete_lagrangian` consistently to first
-        order (``R0 → R0(I + η̂0)``, ``R1 → R1(I + η̂1)``, hence ``F − I → F − I − η̂0 F +
-        F η̂1``; ``q0 → q0 + d0``, ``q1 → q1 + d1``, hence ``u → u + (d1 − d0)/h``), which
-        gives exact first derivatives.
+        One reverse pass gives the Euclidean gradients of ``G`` in its redundant arguments
+        (``R0, R1, F − I, q0, q1, u, w``, treated as independent); the perturbations
+        ``R0 → R0(I + η̂0)``, ``R1 → R1(I + η̂1)`` move them consistently to first order
+        (``F − I → F − I − η̂0 F + F η̂1``, ``u → u + (d1 − d0)/h``). With
+        ``⟨A, η̂⟩ = 2 vee(A)·η`` (vee reads the skew part):
+
+        ``g_k = 2 vee(R0ᵀ ∂G/∂R0 − ∂G/∂F Fᵀ)``, ``g_{k+1} = 2 vee(R1ᵀ ∂G/∂R1 + Fᵀ ∂G/∂F)``,
+        ``∂G/∂q_k = ∂G/∂q0 − (∂G/∂u)/h``, ``∂G/∂q_{k+1} = ∂G/∂q1 + (∂G/∂u)/h``.
         """
-        eye = jnp.eye(3, dtype=R0.dtype)
         FmI = self.tau_minus_identity(w)
-        F = eye + FmI
+        F = jnp.eye(3, dtype=R0.dtype) + FmI
         R1 = R0 @ F
         q1 = q0 + h * u
 
-        def G(e0, e1, d0, d1, w):
-            E0, E1 = so3.hat(e0), so3.hat(e1)
-            return self.discrete_lagrangian(
-                model, h, R0 @ (eye + E0), R1 @ (eye + E1), FmI - E0 @ F + F @ E1, w,
-                q0 + d0, q1 + d1, u + (d1 - d0) / h,
-            )
+        def G(R0, R1, FmI, q0, q1, u, w):
+            return self.discrete_lagrangian(model, h, R0, R1, FmI, w, q0, q1, u)
 
-        z3, zq = jnp.zeros(3, R0.dtype), jnp.zeros_like(q0)
-        return jax.grad(G, argnums=(0, 1, 2, 3, 4))(z3, z3, zq, zq, w)
+        dR0, dR1, dF, dq0, dq1, du, gw = jax.grad(G, argnums=(0, 1, 2, 3, 4, 5, 6))(
+            R0, R1, FmI, q0, q1, u, w
+        )
+        g0 = 2.0 * so3.vee(R0.T @ dR0 - dF @ F.T)
+        g1 = 2.0 * so3.vee(R1.T @ dR1 + F.T @ dF)
+        return g0, g1, dq0 - du / h, dq1 + du / h, gw
 
     def legendre(self, model, R0, w, q0, u, h):
         """Both discrete Legendre transforms ``(μ_k, p_k, μ_{k+1}, p_{k+1})`` of the step

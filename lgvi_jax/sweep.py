@@ -1,0 +1,575 @@
+r"""Batched, resumable energy-drift sweeps: many initial conditions x methods x steps.
+
+A sweep draws ``n`` initial conditions around a model's default state, integrates each one
+with every ``(method, dt)`` pair and records, per trajectory, how well the structure was
+kept. It is built for long unattended runs:
+
+* **Batched and sharded.** A chunk of trajectories is one ``jax.vmap`` of a jitted rollout,
+  split over every device in ``jax.devices()`` with ``jax.shard_map`` (each device runs its
+  share independently, no communication). On a CPU-only machine, expose one XLA host
+  device per core (``lgvi-jax sweep --devices N``, or ``jax.config.update(
+  "jax_num_cpu_devices", N)`` before JAX starts, or ``XLA_FLAGS=
+  --xla_force_host_platform_device_count=N``). The step ``dt`` and the number of steps are
+  run-time values, so each method compiles once per sweep.
+* **Resumable.** Results go to disk chunk by chunk, each file written atomically
+  (temporary file and rename). ``resume=True`` skips every chunk already on disk and gives
+  a result identical, bit for bit, to an uninterrupted run: the initial condition of
+  trajectory ``i`` depends only on ``(seed, i)``, and every chunk is computed with the same
+  batch shape (the last one is padded).
+* **Failure is a value.** A trajectory whose Newton solve fails or whose state stops being
+  finite is flagged (``result`` code, ``failed_step``) and stops contributing; it never
+  stops or contaminates the rest of its batch.
+
+Initial conditions (``perturb = ε``): for rigid bodies, ``R = R0 exp(ε u)`` with ``u`` a
+uniformly random unit vector (a rotation by exactly ``ε``), and each velocity vector
+``x ∈ {ω, v}`` becomes ``x + ε |x| z/√d`` with ``z`` standard normal in ``R^d`` (relative
+perturbation; absolute ``ε`` if ``x = 0``). For Euclidean models the phase point
+``(q, p)`` is perturbed the same way.
+
+Recorded per trajectory (the metrics are taken every ``sample_every`` steps and at the
+end, over the steps before any failure):
+
+``energy_error_max``, ``energy_error_final``
+    max and final :math:`|H - H_0| / |H_0|` (absolute if :math:`H_0 = 0`); final is NaN for
+    a failed trajectory.
+``<invariant>_drift_max``
+    for every other invariant of the model (momentum maps), the max over time and
+    components of :math:`|I - I_0|`.
+``orthogonality_error_max``
+    :math:`\max \|R^\top R - I\|_F` (models on SO(3) only).
+``newton_mean``, ``newton_max``
+    Newton iterations per step; ``result`` (0 = success, see :class:`~lgvi_jax.RESULTS`),
+    ``failed_step`` (-1 if none).
+
+On-disk format (``format = "lgvi-jax-sweep"``, ``version = 1``): ``manifest.json`` (the full
+configuration, the list of chunks, the field descriptions), ``chunks/<method>__dt<j>__
+<start>-<stop>.npz`` (one array per field over the chunk's trajectories, plus ``index``),
+and, when the sweep completes, ``trajectories.csv`` (one row per trajectory, method and
+step), ``summary.json``, ``summary.md`` and ``energy_error.png``.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+import math
+import os
+import tempfile
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import so3
+from .newton import RESULTS
+from .progress import Progress
+from .simulate import _guarded_step
+
+__all__ = [
+    "FORMAT",
+    "SweepConfig",
+    "SweepError",
+    "initial_conditions",
+    "load_results",
+    "run_batch",
+    "run_sweep",
+]
+
+FORMAT = {"format": "lgvi-jax-sweep", "version": 1}
+
+_FIELD_DOCS = {
+    "index": "trajectory index i (initial condition drawn from (seed, i))",
+    "energy_error_max": "max over sampled steps of |H - H0|/|H0| (absolute if H0 = 0)",
+    "energy_error_final": "|H - H0|/|H0| at t_final (NaN if the trajectory failed)",
+    "orthogonality_error_max": "max over sampled steps of ||R^T R - I||_F",
+    "newton_mean": "mean Newton iterations per step (0 for explicit methods)",
+    "newton_max": "most Newton iterations in one step",
+    "result": "0 success, 1 Newton did not converge, 2 non-finite values",
+    "failed_step": "index of the first failed step, -1 if none",
+}
+
+
+class SweepError(ValueError):
+    """Bad sweep configuration or output folder (the message names the argument)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class SweepConfig:
+    """Everything that determines a sweep's results (stored in ``manifest.json``)."""
+
+    system: str
+    methods: tuple[str, ...]
+    dts: tuple[float, ...]
+    t_final: float
+    n: int
+    perturb: float
+    seed: int
+    chunk: int = 256
+    sample_every: int = 1
+    parameters: dict[str, list[float]] = dataclasses.field(default_factory=dict)
+
+    def to_json(self) -> dict[str, Any]:
+        d = dataclasses.asdict(self)
+        d["methods"] = list(self.methods)
+        d["dts"] = list(self.dts)
+        return d
+
+    def n_steps(self, dt: float) -> int:
+        return round(self.t_final / dt)
+
+    def validate(self, valid_methods: Sequence[str] | None = None) -> None:
+        """Raise :class:`SweepError` naming the first bad argument."""
+        if not self.methods:
+            raise SweepError("--method: give at least one method (e.g. lgvi,hamel)")
+        if len(set(self.methods)) != len(self.methods):
+            raise SweepError(f"--method: a method is listed twice: {','.join(self.methods)}")
+        if valid_methods is not None:
+            for m in self.methods:
+                if m not in valid_methods:
+                    raise SweepError(f"--method {m!r} is not available for {self.system}; "
+                                     f"choose from: {', '.join(valid_methods)}")
+        if not self.dts:
+            raise SweepError("--dt: give at least one step (e.g. 0.01,0.005)")
+        if not (math.isfinite(self.t_final) and self.t_final > 0):
+            raise SweepError(f"--t-final must be a finite number > 0, got {self.t_final!r}")
+        for dt in self.dts:
+            if not (math.isfinite(dt) and dt > 0):
+                raise SweepError(f"--dt must contain finite numbers > 0, got {dt!r}")
+            n = round(self.t_final / dt)
+            if n < 1 or abs(n * dt - self.t_final) > 1e-9 * max(self.t_final, dt):
+                raise SweepError(f"--t-final ({self.t_final:g}) must be a positive multiple "
+                                 f"of every --dt; t_final/dt = {self.t_final / dt:.6g} for "
+                                 f"dt = {dt:g}")
+        if isinstance(self.n, bool) or not isinstance(self.n, int) or self.n < 1:
+            raise SweepError(f"--n must be an integer >= 1, got {self.n!r}")
+        if not (math.isfinite(self.perturb) and self.perturb >= 0):
+            raise SweepError(f"--perturb must be a finite number >= 0, got {self.perturb!r}")
+        if isinstance(self.chunk, bool) or not isinstance(self.chunk, int) or self.chunk < 1:
+            raise SweepError(f"--chunk must be an integer >= 1, got {self.chunk!r}")
+        if not isinstance(self.sample_every, int) or self.sample_every < 1:
+            raise SweepError(f"--sample-every must be an integer >= 1, got {self.sample_every!r}")
+        if not isinstance(self.seed, int) or isinstance(self.seed, bool):
+            raise SweepError(f"--seed must be an integer, got {self.seed!r}")
+
+
+# ---------------------------------------------------------------------------------------
+# Initial conditions
+# ---------------------------------------------------------------------------------------
+
+
+def _perturb_vector(key, x, eps):
+    """``x + eps |x| z/√d`` (``eps z/√d`` if ``x = 0``), ``z`` standard normal."""
+    if x.size == 0:
+        return x
+    z = jax.random.normal(key, x.shape, x.dtype) / jnp.sqrt(x.size)
+    norm = jnp.linalg.norm(x)
+    return x + eps * jnp.where(norm > 0, norm, 1.0) * z
+
+
+def _one_initial_condition(model, state0, eps, key):
+    k_rot, k_w, k_v = jax.random.split(key, 3)
+    if hasattr(state0, "R"):
+        omega, v = model.velocities(state0.R, state0.mu, state0.q, state0.p)
+        u = jax.random.normal(k_rot, (3,), state0.R.dtype)
+        u = u / jnp.linalg.norm(u)
+        R = state0.R @ so3.exp(eps * u)
+        return model.state_from_velocities(
+            R, _perturb_vector(k_w, omega, eps), state0.q, _perturb_vector(k_v, v, eps)
+        )
+    flat = jnp.concatenate([state0.q, state0.p])
+    new = _perturb_vector(k_w, flat, eps)
+    n = state0.q.shape[0]
+    return type(state0)(q=new[:n], p=new[n:])
+
+
+@eqx.filter_jit
+def _initial_conditions(model, state0, eps, seed, indices):
+    base = jax.random.key(seed)
+    keys = jax.vmap(lambda i: jax.random.fold_in(base, i))(indices)
+    return jax.vmap(_one_initial_condition, in_axes=(None, None, None, 0))(
+        model, state0, eps, keys
+    )
+
+
+def initial_conditions(model, state0, n: int, perturb: float, seed: int,
+                       start: int = 0) -> Any:
+    """Initial conditions ``start, ..., start + n - 1`` of a sweep, batched (leading axis
+    ``n``). Condition ``i`` depends only on ``(seed, i)`` (``jax.random.fold_in``), so any
+    chunking of the index range gives the same states."""
+    indices = jnp.arange(start, start + n, dtype=jnp.uint32)
+    return _initial_conditions(model, state0, jnp.float64(perturb), jnp.uint32(seed % 2**32),
+                               indices)
+
+
+# ---------------------------------------------------------------------------------------
+# The batched rollout
+# ---------------------------------------------------------------------------------------
+
+
+def _sweep_one(model, method, state0, dt, n_steps, sample_every):
+    """One trajectory of ``n_steps`` (a run-time value) with running metrics."""
+    inv0 = model.invariants(state0)
+    e0 = inv0["energy"]
+    scale = jnp.where(e0 != 0, jnp.abs(e0), 1.0)
+    names = [k for k in inv0 if k != "energy"]
+    on_group = hasattr(state0, "R")
+    ftype = e0.dtype
+
+    def measure(state):
+        inv = model.invariants(state)
+        out = {"energy_error": jnp.abs(inv["energy"] - e0) / scale}
+        for k in names:
+            out[f"{k}_drift"] = jnp.max(jnp.abs(inv[k] - inv0[k]))
+        if on_group:
+            out["orthogonality_error"] = so3.orthogonality_error(state.R)
+        return out
+
+    zero_metrics = jax.tree.map(jnp.zeros_like, measure(state0))
+    int0 = jnp.asarray(0, jnp.int32)
+
+    def body(k, carry):
+        state, code, failed_step, failed_res, it_sum, it_max, maxima, last = carry
+        running = code == RESULTS.successful
+        state, code, failed_step, failed_res, info = _guarded_step(
+            model, method, state, dt, k, code, failed_step, failed_res
+        )
+        iters = jnp.where(running, info.newton_steps, 0).astype(jnp.int32)
+        ok = code == RESULTS.successful
+        sample = ((k + 1) % sample_every == 0) | (k + 1 == n_steps)
+
+        def update(args):
+            maxima, last = args
+            m = measure(state)
+            maxima = jax.tree.map(lambda a, b: jnp.where(ok, jnp.maximum(a, b), a), maxima, m)
+            last = jax.tree.map(lambda b: jnp.where(ok, b, jnp.nan), m)
+            return maxima, last
+
+        maxima, last = jax.lax.cond(sample, update, lambda a: a, (maxima, last))
+        return (state, code, failed_step, failed_res, it_sum + iters,
+                jnp.maximum(it_max, iters), maxima, last)
+
+    init = (state0, jnp.asarray(RESULTS.successful, jnp.int32), jnp.asarray(-1, jnp.int32),
+            jnp.zeros((), ftype), int0, int0, zero_metrics, zero_metrics)
+    carry = jax.lax.fori_loop(int0, n_steps, body, init)
+    _, code, failed_step, _, it_sum, it_max, maxima, last = carry
+    steps_done = jnp.where(failed_step >= 0, failed_step + 1, n_steps)
+    out = {
+        "energy_error_max": maxima["energy_error"],
+        "energy_error_final": last["energy_error"],
+    }
+    for k in names:
+        out[f"{k}_drift_max"] = maxima[f"{k}_drift"]
+    if on_group:
+        out["orthogonality_error_max"] = maxima["orthogonality_error"]
+    out["newton_mean"] = it_sum / jnp.maximum(steps_done, 1).astype(ftype)
+    out["newton_max"] = it_max
+    out["result"] = code
+    out["failed_step"] = failed_step
+    return out
+
+
+def _batched(params, static, states, dt, n_steps, sample_every):
+    model, method = eqx.combine(params, static)
+    return jax.vmap(_sweep_one, in_axes=(None, None, 0, None, None, None))(
+        model, method, states, dt, n_steps, sample_every
+    )
+
+
+_RUNNERS: dict[Any, Callable] = {}
+
+
+def _runner(devices: tuple) -> Callable:
+    """A jitted batched rollout, sharded over ``devices`` (cached per device set)."""
+    if devices in _RUNNERS:
+        return _RUNNERS[devices]
+    if len(devices) == 1:
+        fn = jax.jit(_batched, static_argnums=1)
+    else:
+        from jax.sharding import PartitionSpec as P
+
+        mesh = jax.sharding.Mesh(np.array(devices), ("batch",))
+
+        def sharded(params, static, states, dt, n_steps, sample_every):
+            inner = jax.shard_map(
+                lambda p, s, d, n, e: _batched(p, static, s, d, n, e),
+                mesh=mesh,
+                in_specs=(P(), P("batch"), P(), P(), P()),
+                out_specs=P("batch"),
+                check_vma=False,
+            )
+            return inner(params, states, dt, n_steps, sample_every)
+
+        fn = jax.jit(sharded, static_argnums=1)
+        fn.mesh = mesh  # type: ignore[attr-defined]
+    _RUNNERS[devices] = fn
+    return fn
+
+
+def _place(tree, devices, batch: bool):
+    if len(devices) == 1:
+        return jax.device_put(tree, devices[0])
+    from jax.sharding import NamedSharding
+    from jax.sharding import PartitionSpec as P
+
+    mesh = _runner(devices).mesh
+    return jax.device_put(tree, NamedSharding(mesh, P("batch") if batch else P()))
+
+
+def run_batch(model, method, states, dt: float, n_steps: int, *, sample_every: int = 1,
+              devices: Sequence | None = None) -> dict[str, np.ndarray]:
+    """Integrate a batch of initial states (leading axis ``B``) for ``n_steps`` steps of
+    ``dt`` and return the per-trajectory metrics as NumPy arrays of shape ``(B,)``.
+
+    The batch is split over ``devices`` (default: all of ``jax.devices()`` that divide
+    ``B``, else one). ``dt``, ``n_steps`` and ``sample_every`` are run-time values.
+    """
+    method.check_model(model)
+    batch = jax.tree.leaves(states)[0].shape[0]
+    devices = tuple(jax.devices() if devices is None else devices)
+    if batch % len(devices):
+        devices = devices[:1]
+    params, static = eqx.partition((model, method), eqx.is_array)
+    fn = _runner(devices)
+    out = fn(
+        _place(params, devices, False), static, _place(states, devices, True),
+        jnp.float64(dt), jnp.int32(n_steps), jnp.int32(sample_every),
+    )
+    return {k: np.asarray(v) for k, v in out.items()}
+
+
+# ---------------------------------------------------------------------------------------
+# The sweep driver: chunks on disk, manifest, resume
+# ---------------------------------------------------------------------------------------
+
+
+def _chunk_plan(config: SweepConfig) -> list[dict[str, Any]]:
+    plan = []
+    for method in config.methods:
+        for j, dt in enumerate(config.dts):
+            for start in range(0, config.n, config.chunk):
+                stop = min(start + config.chunk, config.n)
+                plan.append({"file": f"chunks/{method}__dt{j}__{start:07d}-{stop:07d}.npz",
+                             "method": method, "dt": dt, "dt_index": j,
+                             "start": start, "stop": stop})
+    return plan
+
+
+def _write_json_atomic(path: Path, obj: Any) -> None:
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w") as fh:
+            json.dump(obj, fh, indent=1)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def _write_npz_atomic(path: Path, arrays: dict[str, np.ndarray]) -> None:
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            np.savez(fh, **arrays)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def _chunk_ok(path: Path, expected: int) -> bool:
+    try:
+        with np.load(path) as data:
+            return "index" in data and data["index"].shape == (expected,)
+    except (OSError, ValueError, EOFError):
+        return False
+
+
+def prepare_out_dir(out: Path, config: SweepConfig, resume: bool) -> dict[str, Any]:
+    """Create or check the output folder; return the manifest. Raises :class:`SweepError`
+    for an unwritable folder, a folder holding another sweep, or a ``resume`` whose
+    configuration differs from the one on disk."""
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "chunks").mkdir(exist_ok=True)
+    except OSError as err:
+        raise SweepError(f"--out {out}: cannot create folder: {err.strerror}") from None
+    if not os.access(out, os.W_OK) or not os.access(out / "chunks", os.W_OK):
+        raise SweepError(f"--out {out}: folder is not writable")
+    manifest_path = out / "manifest.json"
+    manifest = {**FORMAT, "config": config.to_json(), "fields": _FIELD_DOCS,
+                "chunks": _chunk_plan(config)}
+    if manifest_path.exists():
+        try:
+            old = json.loads(manifest_path.read_text())
+        except (OSError, ValueError):
+            old = None
+        if not resume:
+            raise SweepError(f"--out {out}: already holds a sweep (manifest.json); pass "
+                             "--resume to continue it, or choose another folder")
+        if old is None or old.get("config") != manifest["config"]:
+            old_cfg = (old or {}).get("config", {})
+            diffs = [k for k in manifest["config"] if old_cfg.get(k) != manifest["config"][k]]
+            raise SweepError(f"--resume: the sweep in {out} was started with a different "
+                             f"configuration (differs in: {', '.join(diffs) or 'format'}); "
+                             "use the same arguments or another folder")
+    _write_json_atomic(manifest_path, manifest)
+    return manifest
+
+
+def run_sweep(config: SweepConfig, model, state0, make_method: Callable[[str], Any],
+              out: Path | str, *, resume: bool = False, progress: bool = True,
+              devices: Sequence | None = None,
+              log: Callable[[str], None] | None = None) -> dict[str, Any]:
+    """Run (or resume) a sweep into the folder ``out``; return the summary.
+
+    ``make_method(name)`` builds an integrator. Finished chunks are skipped when
+    ``resume`` is true. ``progress`` draws a bar on a terminal. Returns the summary dict
+    also written to ``summary.json`` (per method and step: energy-error quantiles, failures,
+    Newton iterations, throughput) plus ``"chunks_computed"`` and ``"chunks_skipped"``.
+    """
+    out = Path(out)
+    config.validate()
+    manifest = prepare_out_dir(out, config, resume)
+    devices = tuple(jax.devices() if devices is None else devices)
+    n_dev = len(devices)
+    batch = math.ceil(config.chunk / n_dev) * n_dev  # padded chunk shape, fixed
+    batch = min(batch, math.ceil(config.n / n_dev) * n_dev)
+
+    plan = manifest["chunks"]
+    todo = [c for c in plan if not (resume and _chunk_ok(out / c["file"],
+                                                          c["stop"] - c["start"]))]
+    skipped = len(plan) - len(todo)
+    n_traj = sum(c["stop"] - c["start"] for c in plan)
+    bar = Progress(n_traj, label=f"sweep {config.system}", unit="traj", enabled=progress)
+    bar.advance(sum(c["stop"] - c["start"] for c in plan) - sum(
+        c["stop"] - c["start"] for c in todo), computed=False)
+    if log and skipped:
+        log(f"resuming: {skipped} of {len(plan)} chunks already done")
+    timings: dict[str, float] = {}
+    methods = {}
+    try:
+        for c in todo:
+            name = c["method"]
+            if name not in methods:
+                methods[name] = make_method(name)
+            count = c["stop"] - c["start"]
+            states = initial_conditions(model, state0, batch, config.perturb, config.seed,
+                                        start=c["start"])
+            start = time.perf_counter()
+            res = run_batch(model, methods[name], states, c["dt"], config.n_steps(c["dt"]),
+                            sample_every=config.sample_every, devices=devices)
+            key = f"{name}|{c['dt_index']}"
+            timings[key] = timings.get(key, 0.0) + time.perf_counter() - start
+            arrays = {k: v[:count] for k, v in res.items()}
+            arrays["index"] = np.arange(c["start"], c["stop"], dtype=np.int64)
+            _write_npz_atomic(out / c["file"], arrays)
+            bar.advance(count)
+    finally:
+        bar.close()
+    results = load_results(out)
+    summary = summarize_sweep(config, results)
+    summary["chunks_computed"] = len(todo)
+    summary["chunks_skipped"] = skipped
+    summary["devices"] = [str(d) for d in devices]
+    summary["wall_time_s_by_method_dt"] = timings
+    _write_outputs(out, config, results, summary)
+    return summary
+
+
+def load_results(out: Path | str) -> dict[tuple[str, float], dict[str, np.ndarray]]:
+    """Read every chunk of a sweep folder: ``{(method, dt): {field: array over i}}``,
+    rows in trajectory order. Raises :class:`SweepError` if a chunk is missing."""
+    out = Path(out)
+    manifest = json.loads((out / "manifest.json").read_text())
+    grouped: dict[tuple[str, float], list[dict[str, np.ndarray]]] = {}
+    for c in manifest["chunks"]:
+        path = out / c["file"]
+        if not path.exists():
+            raise SweepError(f"{out}: chunk {c['file']} is missing (run with --resume)")
+        with np.load(path) as data:
+            grouped.setdefault((c["method"], c["dt"]), []).append(
+                {k: data[k] for k in data.files})
+    return {key: {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+            for key, parts in grouped.items()}
+
+
+def summarize_sweep(config: SweepConfig, results) -> dict[str, Any]:
+    rows = []
+    for (method, dt), r in results.items():
+        ok = r["result"] == RESULTS.successful
+        e = r["energy_error_max"][ok]
+        row = {"method": method, "dt": dt, "n": int(r["result"].size),
+               "failed": int(np.sum(~ok)),
+               "energy_error_max_median": float(np.median(e)) if e.size else float("nan"),
+               "energy_error_max_p95": float(np.quantile(e, 0.95)) if e.size else float("nan"),
+               "energy_error_max_max": float(np.max(e)) if e.size else float("nan"),
+               "newton_mean": float(np.mean(r["newton_mean"][ok])) if ok.any() else float("nan")}
+        for k in r:
+            if k.endswith("_drift_max") or k == "orthogonality_error_max":
+                row[f"{k}_max"] = float(np.max(r[k][ok])) if ok.any() else float("nan")
+        rows.append(row)
+    return {**FORMAT, "config": config.to_json(), "rows": rows}
+
+
+def _write_outputs(out: Path, config: SweepConfig, results, summary) -> None:
+    # trajectories.csv: one row per (method, dt, i)
+    fields = [k for k in next(iter(results.values())) if k != "index"]
+    tmp = out / ".trajectories.csv.tmp"
+    with open(tmp, "w", newline="") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(["method", "dt", "index", *fields])
+        for (method, dt), r in results.items():
+            for j in range(r["index"].size):
+                writer.writerow([method, repr(dt), int(r["index"][j]),
+                                 *(repr(r[k][j].item()) for k in fields)])
+    os.replace(tmp, out / "trajectories.csv")
+    _write_json_atomic(out / "summary.json", summary)
+    lines = [f"# Sweep: {config.system}, {config.n} initial conditions, perturbation "
+             f"{config.perturb:g}, seed {config.seed}, t_final = {config.t_final:g}", "",
+             "Relative energy error max |H - H0|/|H0| per trajectory (over trajectories "
+             "that did not fail).", "",
+             "| method | dt | failed | median | p95 | max | Newton its/step |",
+             "|---|---|---|---|---|---|---|"]
+    for row in summary["rows"]:
+        lines.append(f"| {row['method']} | {row['dt']:g} | {row['failed']}/{row['n']} | "
+                     f"{row['energy_error_max_median']:.3e} | {row['energy_error_max_p95']:.3e}"
+                     f" | {row['energy_error_max_max']:.3e} | {row['newton_mean']:.2f} |")
+    (out / "summary.md").write_text("\n".join(lines) + "\n")
+    _plot(out / "energy_error.png", config, results)
+
+
+def _plot(path: Path, config: SweepConfig, results) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .plotting import METHOD_STYLE
+
+    fig, ax = plt.subplots(figsize=(max(6.0, 1.1 * len(results) + 2), 4.2))
+    data, labels, colors = [], [], []
+    for (method, dt), r in results.items():
+        ok = r["result"] == RESULTS.successful
+        e = r["energy_error_max"][ok]
+        data.append(np.log10(np.maximum(e, 1e-17)) if e.size else [np.nan])
+        failed = int(np.sum(~ok))
+        labels.append(f"{method}\ndt={dt:g}" + (f"\n{failed} failed" if failed else ""))
+        colors.append(METHOD_STYLE.get(method, {}).get("color", "C0"))
+    parts = ax.violinplot(data, showmedians=True, showextrema=True)
+    for body, color in zip(parts["bodies"], colors, strict=True):
+        body.set_facecolor(color)
+        body.set_alpha(0.5)
+    ax.set_xticks(range(1, len(labels) + 1), labels, fontsize=8)
+    ax.set_ylabel(r"$\log_{10}$ max $|H - H_0|/|H_0|$")
+    ax.set_title(f"{config.system}: energy error over {config.n} initial conditions "
+                 f"(perturbation {config.perturb:g}, t = {config.t_final:g})", fontsize=10)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)

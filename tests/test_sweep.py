@@ -1,0 +1,235 @@
+"""Batched sweeps: batch = loop of single runs, sharding, failure isolation, resume after a
+kill, initial conditions, and clear errors for bad arguments."""
+
+import csv
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import lgvi_jax as lj
+from lgvi_jax import so3
+from lgvi_jax.cli import main
+from lgvi_jax.diagnostics import rk4_energy_factor, summarize
+from lgvi_jax.scenes import get_scene
+from lgvi_jax.sweep import SweepConfig, SweepError, initial_conditions, run_batch, run_sweep
+
+DT = 5e-3
+N_STEPS = 200
+
+
+@pytest.fixture(scope="module")
+def car():
+    model = lj.CarPendulum()
+    return model, model.default_state()
+
+
+@eqx.filter_jit
+def velocities(model, s):
+    return model.velocities(s.R, s.mu, s.q, s.p)
+
+
+def _take(tree, i):
+    return jax.tree.map(lambda x: x[i], tree)
+
+
+def test_initial_conditions_reproducible_and_sized(car):
+    model, s0 = car
+    eps = 0.03
+    batch = initial_conditions(model, s0, 6, eps, seed=7)
+    # Independent of chunking: condition i depends on (seed, i) only.
+    tail = initial_conditions(model, s0, 3, eps, seed=7, start=3)
+    for a, b in zip(jax.tree.leaves(_take(batch, slice(3, 6))), jax.tree.leaves(tail),
+                    strict=True):
+        np.testing.assert_array_equal(a, b)
+    other = initial_conditions(model, s0, 6, eps, seed=8)
+    assert not np.allclose(batch.mu, other.mu)
+    # Rotation by exactly eps, R stays in SO(3); velocities moved by O(eps) relative.
+    angles = jax.jit(jax.vmap(so3.rotation_angle))(jnp.einsum("ji,bjk->bik", s0.R, batch.R))
+    np.testing.assert_allclose(angles, eps, rtol=1e-9)
+    assert float(jnp.max(so3.orthogonality_error(batch.R))) < 1e-14
+    w0, v0 = velocities(model, s0)
+    w, v = jax.vmap(velocities, in_axes=(None, 0))(model, batch)
+    rel = np.linalg.norm(w - w0, axis=1) / np.linalg.norm(w0)
+    assert 0 < rel.max() < 5 * eps and rel.mean() > 0.2 * eps
+    rel_v = np.linalg.norm(v - v0, axis=1) / np.linalg.norm(v0)
+    assert 0 < rel_v.max() < 5 * eps
+    np.testing.assert_array_equal(batch.q, np.broadcast_to(s0.q, (6, 2)))
+    # eps = 0 gives the central state itself.
+    same = initial_conditions(model, s0, 2, 0.0, seed=1)
+    np.testing.assert_allclose(same.mu, np.broadcast_to(s0.mu, (2, 3)), atol=1e-14)
+
+
+@pytest.mark.parametrize("name", ["lgvi"])
+def test_batch_equals_loop_of_single_runs(car, name):
+    """The vmapped and sharded batch reproduces each single-trajectory run."""
+    model, s0 = car
+    method = lj.RIGID_METHODS[name]()
+    states = initial_conditions(model, s0, 4, 0.05, seed=2)
+    sharded = run_batch(model, method, states, DT, N_STEPS)
+    assert len(jax.devices()) == 2  # tests/conftest.py: the batch is split over 2 devices
+    single_device = run_batch(model, method, states, DT, N_STEPS, devices=jax.devices()[:1])
+    for key in sharded:
+        # Round-off: 2 trajectories per device vs 4 on one device run through different
+        # vector code paths; the drifts are themselves round-off (~1e-14).
+        np.testing.assert_allclose(sharded[key], single_device[key], rtol=1e-9, atol=1e-13,
+                                   err_msg=key)
+    for i in range(4):
+        traj = lj.simulate(model, method, _take(states, i), DT, N_STEPS)
+        ref = summarize(traj)
+        assert sharded["result"][i] == 0
+        assert sharded["newton_max"][i] == int(traj.newton_max)
+        np.testing.assert_allclose(sharded["newton_mean"][i], float(traj.newton_mean),
+                                   rtol=1e-15)
+        # Round-off: the batched code may contract differently (FMA, vector loops). Each
+        # metric is a difference of O(1) quantities, so its round-off is absolute (~1e-15);
+        # 1e-13 allows for its growth over 200 steps.
+        for key in ("energy_error_max", "energy_error_final", "momentum_drift_max",
+                    "angular_momentum_z_drift_max", "orthogonality_error_max"):
+            np.testing.assert_allclose(sharded[key][i], ref[key], rtol=1e-9, atol=1e-13,
+                                       err_msg=key)
+
+
+def test_failed_trajectory_is_flagged_and_isolated(car):
+    model, s0 = car
+    method = lj.LGVI()
+    states = initial_conditions(model, s0, 4, 0.05, seed=4)
+    good = run_batch(model, method, states, DT, N_STEPS)
+    # Trajectory 1 starts with a NaN; trajectory 2 spins far too fast for Newton at dt.
+    mu = states.mu.at[1, 0].set(jnp.nan).at[2].multiply(1e4)
+    bad_states = lj.RigidState(R=states.R, mu=mu, q=states.q, p=states.p)
+    res = run_batch(model, method, bad_states, DT, N_STEPS)
+    assert res["result"][1] == lj.RESULTS.nonfinite and res["failed_step"][1] == 0
+    assert res["result"][2] != 0 and res["failed_step"][2] >= 0
+    assert np.isnan(res["energy_error_final"][1]) and np.isnan(res["energy_error_final"][2])
+    for i in (0, 3):
+        assert res["result"][i] == 0 and res["failed_step"][i] == -1
+        for key in good:
+            np.testing.assert_array_equal(res[key][i], good[key][i], err_msg=key)
+
+
+def test_sweep_api_outputs_and_summary(tmp_path):
+    scene = get_scene("oscillator")
+    model, s0 = scene.build({})
+    config = SweepConfig(system="oscillator", methods=("verlet", "rk4"), dts=(0.1, 0.05),
+                         t_final=10.0, n=5, perturb=0.1, seed=0, chunk=2, sample_every=3)
+    summary = run_sweep(config, model, s0, scene.method, tmp_path, progress=False)
+    assert summary["chunks_computed"] == 2 * 2 * 3 and summary["chunks_skipped"] == 0
+    for name in ("manifest.json", "trajectories.csv", "summary.json", "summary.md",
+                 "energy_error.png"):
+        assert (tmp_path / name).exists(), name
+    manifest = json.loads((tmp_path / "manifest.json").read_text())
+    assert manifest["format"] == "lgvi-jax-sweep" and manifest["config"]["n"] == 5
+    rows = list(csv.DictReader(open(tmp_path / "trajectories.csv")))
+    assert len(rows) == 2 * 2 * 5
+    # Störmer–Verlet on the oscillator: energy error <= (h ω)^2/8-ish relative, bounded;
+    # compare with the closed-form bound of the modified energy: |ΔH|/H <= h^2/4 (ω = 1).
+    for row in rows:
+        if row["method"] == "verlet":
+            assert float(row["energy_error_max"]) <= float(row["dt"]) ** 2 / 4 + 1e-15
+        else:
+            # RK4 on the oscillator multiplies the energy by a known factor per step, the
+            # same for every initial condition (closed form, diagnostics.rk4_energy_factor).
+            dt = float(row["dt"])
+            exact = abs(rk4_energy_factor(dt, round(10.0 / dt)) - 1.0)
+            # atol: the energy's own round-off (~1e-16 per step, over 200 steps).
+            np.testing.assert_allclose(float(row["energy_error_final"]), exact, rtol=1e-8,
+                                       atol=1e-13)
+
+
+def _sweep_args(out, extra=()):
+    return [sys.executable, "-m", "lgvi_jax.cli", "sweep", "car-pendulum", "--method", "lgvi",
+            "--dt", "0.005", "--t-final", "10", "--n", "24", "--chunk", "2", "--seed", "5",
+            "--perturb", "0.02", "--devices", "1", "--out", str(out), "--json", *extra]
+
+
+def _csv_rows(path):
+    return sorted(csv.reader(open(path)))
+
+
+def test_resume_after_kill_matches_uninterrupted_run(tmp_path):
+    killed, clean = tmp_path / "killed", tmp_path / "clean"
+    proc = subprocess.Popen(_sweep_args(killed), stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE)
+    chunks = killed / "chunks"
+    deadline = time.time() + 120
+    while time.time() < deadline and proc.poll() is None:
+        done = list(chunks.glob("*.npz")) if chunks.exists() else []
+        if len(done) >= 2:
+            break
+        time.sleep(0.01)
+    os.kill(proc.pid, signal.SIGKILL)  # no chance to clean up
+    proc.wait()
+    before = {p.name: p.stat().st_mtime_ns for p in chunks.glob("*.npz")}
+    assert 2 <= len(before) < 12, "the kill must land mid-sweep"
+    assert not (killed / "trajectories.csv").exists()
+
+    # Without --resume the folder is refused; with it, finished chunks are kept as they are.
+    again = subprocess.run(_sweep_args(killed), capture_output=True, text=True)
+    assert again.returncode == 2 and "--resume" in again.stderr
+    resumed = subprocess.run(_sweep_args(killed, ["--resume"]), capture_output=True, text=True)
+    assert resumed.returncode == 0, resumed.stderr
+    summary = json.loads(resumed.stdout)
+    assert summary["chunks_skipped"] == len(before)
+    assert summary["chunks_computed"] == 12 - len(before)
+    for name, mtime in before.items():
+        assert (chunks / name).stat().st_mtime_ns == mtime, f"{name} was recomputed"
+
+    full = subprocess.run(_sweep_args(clean), capture_output=True, text=True)
+    assert full.returncode == 0, full.stderr
+    assert _csv_rows(killed / "trajectories.csv") == _csv_rows(clean / "trajectories.csv")
+
+    # A resume with other arguments is refused, naming what differs.
+    other = subprocess.run(_sweep_args(killed, ["--resume", "--seed", "6"]),
+                           capture_output=True, text=True)
+    assert other.returncode == 2 and "seed" in other.stderr
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--method", ","], "--method: give at least one method"),
+        (["--method", "lgvi,nope"], "--method 'nope' is not available"),
+        (["--n", "0"], "--n must be an integer >= 1"),
+        (["--n", "-3"], "--n must be an integer >= 1"),
+        (["--perturb", "-0.1"], "--perturb must be a finite number >= 0"),
+        (["--dt", "0.003"], "must be a positive multiple of every --dt"),
+        (["--dt", ""], "--dt: give at least one step"),
+        (["--chunk", "0"], "--chunk must be an integer >= 1"),
+        (["--devices", "x"], "--devices must be 'auto' or an integer"),
+    ],
+)
+def test_bad_arguments_exit_2_with_a_clear_message(tmp_path, capsys, args, message):
+    base = {"--method": "lgvi", "--dt": "0.01", "--t-final": "1", "--n": "4",
+            "--out": str(tmp_path / "out")}
+    extra = dict(zip(args[::2], args[1::2], strict=True))
+    argv = ["sweep", "car-pendulum"]
+    for k, v in {**base, **extra}.items():
+        argv += [k, v]
+    code = main(argv)
+    err = capsys.readouterr().err
+    assert code == 2
+    assert message in err and "Traceback" not in err
+    assert not (tmp_path / "out" / "chunks").exists() or message.startswith("--devices")
+
+
+def test_unwritable_out_dir_is_refused(tmp_path, capsys):
+    blocker = tmp_path / "file"
+    blocker.write_text("not a folder")
+    code = main(["sweep", "oscillator", "--method", "verlet", "--dt", "0.1", "--t-final", "1",
+                 "--n", "2", "--out", str(blocker / "sub")])
+    err = capsys.readouterr().err
+    assert code == 2 and "cannot create folder" in err and "Traceback" not in err
+    with pytest.raises(SweepError, match="cannot create folder"):
+        scene = get_scene("oscillator")
+        model, s0 = scene.build({})
+        run_sweep(SweepConfig("oscillator", ("verlet",), (0.1,), 1.0, 2, 0.0, 0), model, s0,
+                  scene.method, blocker / "sub", progress=False)
