@@ -1,4 +1,4 @@
-"""Command-line interface: ``lgvi-jax {simulate, sweep, reproduce, info}``.
+"""Command-line interface: ``lgvi-jax {simulate, sweep, bench, reproduce, info}``.
 
 A thin layer over the library. Bad input exits with status 2 and a one-line message (no
 traceback); a run whose integration fails still writes its output (with the failure
@@ -292,6 +292,25 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_bench(args: argparse.Namespace) -> int:
+    configure_devices(args.devices)
+    from .experiments.bench_throughput import METHODS, run
+
+    methods = tuple(_csv_list(args.methods, str, "--methods")) if args.methods else METHODS
+    for m in methods:
+        if m not in METHODS:
+            raise UsageError(f"--methods {m!r}: choose from {', '.join(METHODS)}")
+    out = Path(args.out)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise UsageError(f"--out {out}: cannot create folder: {err.strerror}") from None
+    run(out, quick=args.quick, steps=args.steps, batch=args.batch, methods=methods,
+        long_run=not args.no_long_run, log=lambda m: print(m, file=sys.stderr, flush=True))
+    print((out / "bench.md").read_text(), end="")
+    return 0
+
+
 def cmd_info(args: argparse.Namespace) -> int:
     from .scenes import SCENES
 
@@ -368,6 +387,23 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("--json", action="store_true",
                     help="print the summary as one JSON object (no progress bar)")
     sw.set_defaults(func=cmd_sweep)
+
+    be = sub.add_parser("bench", help="throughput benchmark against the Numba baseline",
+                        description="Time the car-pendulum VIs (one trajectory and a batch) "
+                        "against a compiled-loop Numba baseline; writes bench.json and "
+                        "bench.md into OUT.")
+    be.add_argument("--out", required=True, metavar="DIR", help="output folder")
+    be.add_argument("--quick", action="store_true", help="small sizes (smoke test)")
+    be.add_argument("--steps", type=_positive_int, default=None, help="steps (default 10^4)")
+    be.add_argument("--batch", type=_positive_int, default=None,
+                    help="batch size (default 1024)")
+    be.add_argument("--methods", default=None, metavar="M[,M...]",
+                    help="VI methods (default lgvi,hamel,hamel-cayley,hamel-exact)")
+    be.add_argument("--no-long-run", action="store_true",
+                    help="skip the 10^6-step bounded-memory run")
+    be.add_argument("--devices", default="auto", metavar="auto|N",
+                    help="host devices on a CPU-only machine (default: one per core)")
+    be.set_defaults(func=cmd_bench)
 
     info = sub.add_parser("info", help="list systems, methods and parameters")
     info.set_defaults(func=cmd_info)

@@ -75,6 +75,7 @@ __all__ = [
     "FORMAT",
     "SweepConfig",
     "SweepError",
+    "batch_arguments",
     "initial_conditions",
     "load_results",
     "run_batch",
@@ -274,22 +275,42 @@ def _sweep_one(model, method, state0, dt, n_steps, sample_every):
     return out
 
 
-def _batched(params, static, states, dt, n_steps, sample_every):
-    model, method = eqx.combine(params, static)
-    return jax.vmap(_sweep_one, in_axes=(None, None, 0, None, None, None))(
-        model, method, states, dt, n_steps, sample_every
-    )
+def _final_one(model, method, state0, dt, n_steps, sample_every):
+    """One trajectory, no metrics: the final state and the result code (benchmarks)."""
+    del sample_every
+
+    def body(k, carry):
+        state, code, failed_step, failed_res = carry
+        state, code, failed_step, failed_res, _ = _guarded_step(
+            model, method, state, dt, k, code, failed_step, failed_res)
+        return state, code, failed_step, failed_res
+
+    init = (state0, jnp.asarray(RESULTS.successful, jnp.int32), jnp.asarray(-1, jnp.int32),
+            jnp.zeros((), dt.dtype))
+    state, code, failed_step, _ = jax.lax.fori_loop(jnp.asarray(0, jnp.int32), n_steps,
+                                                    body, init)
+    return {"state": state, "result": code, "failed_step": failed_step}
 
 
+_ONE = {"metrics": _sweep_one, "final": _final_one}
 _RUNNERS: dict[Any, Callable] = {}
 
 
-def _runner(devices: tuple) -> Callable:
-    """A jitted batched rollout, sharded over ``devices`` (cached per device set)."""
-    if devices in _RUNNERS:
-        return _RUNNERS[devices]
+def _runner(devices: tuple, kind: str = "metrics") -> Callable:
+    """A jitted batched rollout (``kind`` = ``"metrics"`` or ``"final"``), sharded over
+    ``devices`` with ``shard_map`` (cached per device set)."""
+    key = (devices, kind)
+    if key in _RUNNERS:
+        return _RUNNERS[key]
+    one = _ONE[kind]
+
+    def batched(params, static, states, dt, n_steps, sample_every):
+        model, method = eqx.combine(params, static)
+        return jax.vmap(one, in_axes=(None, None, 0, None, None, None))(
+            model, method, states, dt, n_steps, sample_every)
+
     if len(devices) == 1:
-        fn = jax.jit(_batched, static_argnums=1)
+        fn = jax.jit(batched, static_argnums=1)
     else:
         from jax.sharding import PartitionSpec as P
 
@@ -297,7 +318,7 @@ def _runner(devices: tuple) -> Callable:
 
         def sharded(params, static, states, dt, n_steps, sample_every):
             inner = jax.shard_map(
-                lambda p, s, d, n, e: _batched(p, static, s, d, n, e),
+                lambda p, s, d, n, e: batched(p, static, s, d, n, e),
                 mesh=mesh,
                 in_specs=(P(), P("batch"), P(), P(), P()),
                 out_specs=P("batch"),
@@ -306,8 +327,7 @@ def _runner(devices: tuple) -> Callable:
             return inner(params, states, dt, n_steps, sample_every)
 
         fn = jax.jit(sharded, static_argnums=1)
-        fn.mesh = mesh  # type: ignore[attr-defined]
-    _RUNNERS[devices] = fn
+    _RUNNERS[key] = fn
     return fn
 
 
@@ -317,8 +337,23 @@ def _place(tree, devices, batch: bool):
     from jax.sharding import NamedSharding
     from jax.sharding import PartitionSpec as P
 
-    mesh = _runner(devices).mesh
+    mesh = jax.sharding.Mesh(np.array(devices), ("batch",))
     return jax.device_put(tree, NamedSharding(mesh, P("batch") if batch else P()))
+
+
+def batch_arguments(model, method, states, dt, n_steps, *, sample_every=1, devices=None,
+                    kind="metrics"):
+    """``(runner, args)`` of a batched rollout, the arguments placed on ``devices``: call
+    ``runner(*args)``, or ``runner.lower(*args).compile()`` to time compilation apart."""
+    method.check_model(model)
+    batch = jax.tree.leaves(states)[0].shape[0]
+    devices = tuple(jax.devices() if devices is None else devices)
+    if batch % len(devices):
+        devices = devices[:1]
+    params, static = eqx.partition((model, method), eqx.is_array)
+    args = (_place(params, devices, False), static, _place(states, devices, True),
+            jnp.float64(dt), jnp.int32(n_steps), jnp.int32(sample_every))
+    return _runner(devices, kind), args
 
 
 def run_batch(model, method, states, dt: float, n_steps: int, *, sample_every: int = 1,
@@ -329,18 +364,9 @@ def run_batch(model, method, states, dt: float, n_steps: int, *, sample_every: i
     The batch is split over ``devices`` (default: all of ``jax.devices()`` that divide
     ``B``, else one). ``dt``, ``n_steps`` and ``sample_every`` are run-time values.
     """
-    method.check_model(model)
-    batch = jax.tree.leaves(states)[0].shape[0]
-    devices = tuple(jax.devices() if devices is None else devices)
-    if batch % len(devices):
-        devices = devices[:1]
-    params, static = eqx.partition((model, method), eqx.is_array)
-    fn = _runner(devices)
-    out = fn(
-        _place(params, devices, False), static, _place(states, devices, True),
-        jnp.float64(dt), jnp.int32(n_steps), jnp.int32(sample_every),
-    )
-    return {k: np.asarray(v) for k, v in out.items()}
+    fn, args = batch_arguments(model, method, states, dt, n_steps, sample_every=sample_every,
+                               devices=devices)
+    return {k: np.asarray(v) for k, v in fn(*args).items()}
 
 
 # ---------------------------------------------------------------------------------------
