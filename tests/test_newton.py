@@ -140,6 +140,39 @@ def test_chord_variant_converges_linearly():
     assert int(chord.num_steps) > int(full.num_steps)
 
 
+def test_chord_phase_then_newton_fallback():
+    """chord_steps: converges like chord when the chord contracts; otherwise falls back to
+    full Newton from the initial guess and gives Newton's own answer."""
+    a = jnp.array([2.0, 3.0])
+    y0 = jnp.array([1.2, 1.4])
+    full = newton_solve(cubic, y0, a)
+    mixed = newton_solve(cubic, y0, a, Newton(chord_steps=30))
+    assert int(mixed.result) == RESULTS.successful
+    np.testing.assert_allclose(np.asarray(mixed.value), np.asarray(full.value), rtol=1e-12)
+    # A guess far from the root: the chord iteration stalls (its Jacobian is poor there);
+    # the fallback reaches the root Newton reaches.
+    far = jnp.array([40.0, 0.05])
+    full = newton_solve(cubic, far, a, Newton(max_steps=60))
+    pure_chord = newton_solve(cubic, far, a, Newton(chord=True, max_steps=60))
+    mixed = newton_solve(cubic, far, a, Newton(chord_steps=3, max_steps=60))
+    assert int(full.result) == RESULTS.successful
+    assert int(pure_chord.result) != RESULTS.successful
+    assert int(mixed.result) == RESULTS.successful
+    assert int(mixed.num_steps) > int(full.num_steps)  # chord iterations are counted too
+    np.testing.assert_allclose(np.asarray(mixed.value), np.asarray(full.value), rtol=1e-12)
+
+
+def test_unrolled_iterations_give_the_loop_iterates():
+    a = jnp.array([2.0, 3.0])
+    y0 = jnp.array([1.2, 1.4])
+    loop = newton_solve(cubic, y0, a)
+    for unroll in (1, 3, 50):
+        sol = newton_solve(cubic, y0, a, Newton(unroll=unroll))
+        np.testing.assert_array_equal(np.asarray(sol.value), np.asarray(loop.value))
+        assert int(sol.num_steps) == int(loop.num_steps)
+        assert int(sol.result) == int(loop.result)
+
+
 def test_implicit_gradient_matches_analytic():
     # y*(a) = a^(1/3): dy/da = 1 / (3 y^2)
     @jax.jit
