@@ -67,6 +67,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import so3
+from .cli import write_npz_atomic
 from .newton import RESULTS
 from .progress import Progress
 from .simulate import _guarded_step
@@ -397,17 +398,6 @@ def _write_json_atomic(path: Path, obj: Any) -> None:
         raise
 
 
-def _write_npz_atomic(path: Path, arrays: dict[str, np.ndarray]) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            np.savez(fh, **arrays)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def _chunk_ok(path: Path, expected: int) -> bool:
     try:
         with np.load(path) as data:
@@ -494,7 +484,7 @@ def run_sweep(config: SweepConfig, model, state0, make_method: Callable[[str], A
             timings[key] = timings.get(key, 0.0) + time.perf_counter() - start
             arrays = {k: v[:count] for k, v in res.items()}
             arrays["index"] = np.arange(c["start"], c["stop"], dtype=np.int64)
-            _write_npz_atomic(out / c["file"], arrays)
+            write_npz_atomic(out / c["file"], arrays)
             bar.advance(count)
     finally:
         bar.close()
