@@ -1,46 +1,7 @@
-r"""The car-pendulum against an independent reference: its continuous equations of motion,
-derived by hand below, written in plain NumPy and integrated by SciPy's DOP853 at
-``rtol = atol = 1e-13``.
-
-Notation: ``e3 = (0, 0, 1)`` points down (along gravity), ``P = [[1, 0, 0], [0, 1, 0]]``,
-``R`` maps body to inertial coordinates, ``Ṙ = R ω̂``, ``q = (x, y)``, ``v = q̇``, ``ρ = ρ_c``,
-and ``a = RᵀPᵀv`` is the cart velocity seen in the body frame. The Lagrangian is
-
-    L = ½(m+M)|v|² + ½ωᵀJω + m vᵀPR(ω×ρ) + m g e3ᵀRρ.
-
-Momenta. The coupling is ``m vᵀPR(ω×ρ) = m a·(ω×ρ) = m ω·(ρ×a)`` (cyclic triple product), so
-
-    Π = ∂L/∂ω = Jω + m ρ×a = Jω + m ρ̂RᵀPᵀv,      p = ∂L/∂v = (m+M)v + m PR(ω×ρ).
-
-Left-trivialised configuration derivative, ``τ·η = d/dε L(R e^{εη̂}, ω, q, v)|₀`` (the
-tangent of ``R e^{εη̂}`` at 0 is ``Rη̂``):
-
-* coupling: ``m vᵀPRη̂(ω×ρ) = m a·(η×(ω×ρ)) = m η·((ω×ρ)×a)``;
-* gravity: ``m g e3ᵀRη̂ρ = m g (Rᵀe3)·(η×ρ) = m g η·(ρ×Rᵀe3)``;
-
-so ``τ = m (ω×ρ)×a + m g ρ×(Rᵀe3)``. ``L`` does not depend on ``q`` (cart translations).
-
-Equations of motion (Euler–Poincaré with configuration dependence, and Euler–Lagrange for
-the cart):
-
-    Ṙ = Rω̂,   Π̇ = Π×ω + τ,   q̇ = v,   ṗ = 0.
-
-(For ``m = 0`` the first is Euler's ``Jω̇ = Jω×ω``: the sign of ``Π×ω`` is right.)
-Accelerations: ``ȧ = (Rω̂)ᵀPᵀv + RᵀPᵀv̇ = −ω×a + RᵀPᵀv̇`` and
-``d/dt PR(ω×ρ) = PR(ω×(ω×ρ)) + PR(ω̇×ρ)`` with ``ω̇×ρ = −ρ̂ω̇``. Hence ``(ω̇, v̇)`` solve the
-5x5 linear system (3 rotational + 2 cart unknowns)
-
-    J ω̇ + m ρ̂RᵀPᵀ v̇       = Π×ω + τ + m ρ×(ω×a),
-    −m PRρ̂ ω̇ + (m+M) v̇   = −m PR(ω×(ω×ρ)),
-
-whose matrix is symmetric (``ρ̂ᵀ = −ρ̂``) and positive definite (it is the kinetic-energy
-Hessian). Energy: ``E = Π·ω + p·v − L = ½(m+M)|v|² + ½ωᵀJω + m vᵀPR(ω×ρ) − m g e3ᵀRρ``.
-Conserved besides ``E`` and ``p``: the vertical angular momentum about the origin,
-``e3·(RΠ) + x p_y − y p_x`` (rotations about the vertical through the origin).
-
-The reference uses only the model's parameters (as plain numbers) and its initial
-velocities; none of the library's mechanics (autodiff momenta, velocities, vector field).
-The library enters only as the system under test.
+r"""The car-pendulum against an independent reference: the hand-derived continuous equations
+of :mod:`lgvi_jax.reference` (the derivation is in its docstring), in plain NumPy,
+integrated by SciPy's DOP853 at ``rtol = atol = 1e-13``. The reference uses only the model's
+parameters and initial velocities; the library enters only as the system under test.
 """
 
 from __future__ import annotations
@@ -49,13 +10,10 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from scipy.integrate import solve_ivp
 
 import lgvi_jax as L
 from lgvi_jax.diagnostics import observed_order
-
-E3 = np.array([0.0, 0.0, 1.0])
-P = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+from lgvi_jax.reference import HandReference, hat, moving_scene, paper_scene
 
 VI_METHODS = ("lgvi", "hamel", "hamel-cayley", "hamel-exact")
 ALL_METHODS = (*VI_METHODS, "rk4")
@@ -71,99 +29,9 @@ N_CHECKPOINTS = 5
 T_REF = 2.0
 
 
-def hat(w):
-    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-
-
-class HandReference:
-    """The hand-derived equations (module docstring) in NumPy; state vector
-    ``y = (R (9, row-major), ω (3), q = (x, y) (2), v (2))``."""
-
-    def __init__(self, model: L.CarPendulum):
-        self.m = float(model.m)
-        self.M = float(model.M)
-        self.g = float(model.g)
-        self.rho = np.array(model.rho_c, dtype=np.float64)
-        self.J = np.array(model.J, dtype=np.float64)
-        self.y0 = np.concatenate(
-            [np.ravel(np.asarray(model.R0)), np.asarray(model.omega0), np.asarray(model.q0),
-             np.asarray(model.v0)]
-        ).astype(np.float64)
-
-    @staticmethod
-    def split(y):
-        return y[:9].reshape(3, 3), y[9:12], y[12:14], y[14:16]
-
-    def momenta(self, y):
-        """``(Π, p)``."""
-        R, w, _, v = self.split(y)
-        a = R.T @ P.T @ v
-        Pi = self.J @ w + self.m * np.cross(self.rho, a)
-        p = (self.m + self.M) * v + self.m * P @ R @ np.cross(w, self.rho)
-        return Pi, p
-
-    def torque(self, y):
-        """Left-trivialised ``∂L/∂R``: ``τ = m (ω×ρ)×a + m g ρ×(Rᵀe3)``."""
-        R, w, _, v = self.split(y)
-        a = R.T @ P.T @ v
-        return (self.m * np.cross(np.cross(w, self.rho), a)
-                + self.m * self.g * np.cross(self.rho, R.T @ E3))
-
-    def energy(self, y):
-        R, w, _, v = self.split(y)
-        m, rho = self.m, self.rho
-        return (0.5 * (m + self.M) * v @ v + 0.5 * w @ self.J @ w
-                + m * v @ (P @ R @ np.cross(w, rho)) - m * self.g * E3 @ (R @ rho))
-
-    def angular_momentum_z(self, y):
-        R, _, q, _ = self.split(y)
-        Pi, p = self.momenta(y)
-        return (R @ Pi)[2] + q[0] * p[1] - q[1] * p[0]
-
-    def mass_matrix(self, R):
-        m, M, rho_hat = self.m, self.M, hat(self.rho)
-        A = np.empty((5, 5))
-        A[:3, :3] = self.J
-        A[:3, 3:] = m * rho_hat @ R.T @ P.T
-        A[3:, :3] = -m * P @ R @ rho_hat
-        A[3:, 3:] = (m + M) * np.eye(2)
-        return A
-
-    def rhs(self, _t, y):
-        R, w, _, v = self.split(y)
-        m, rho = self.m, self.rho
-        a = R.T @ P.T @ v
-        Pi, _ = self.momenta(y)
-        b = np.concatenate([
-            np.cross(Pi, w) + self.torque(y) + m * np.cross(rho, np.cross(w, a)),
-            -m * P @ R @ np.cross(w, np.cross(w, rho)),
-        ])
-        acc = np.linalg.solve(self.mass_matrix(R), b)
-        return np.concatenate([(R @ hat(w)).ravel(), acc[:3], v, acc[3:]])
-
-    def solve(self, t_final):
-        """The solver's own steps on ``[0, t_final]`` (times, states): no dense-output
-        interpolation, whose error (~2e-12 here, measured) exceeds the step accuracy; the
-        last state is an accepted step at exactly ``t_final``."""
-        sol = solve_ivp(self.rhs, (0.0, t_final), self.y0, method="DOP853",
-                        rtol=1e-13, atol=1e-13)
-        assert sol.success, sol.message
-        assert sol.t[-1] == t_final
-        return sol.t, sol.y.T
-
-
 # --- the two initial states --------------------------------------------------------------
 
-CASES = {
-    # The paper's parameters and initial state (zero horizontal momentum).
-    "paper": lambda: L.CarPendulum(),
-    # Non-zero horizontal momentum, a generic attitude, the cart away from the origin (so
-    # that x p_y − y p_x matters in the vertical angular momentum).
-    "moving": lambda: L.CarPendulum(
-        q0=(0.7, -0.4), v0=(0.8, -0.3), omega0=(1.0, -0.5, 3.0),
-        R0=L.so3.exp(jnp.array([0.6, -0.9, 0.4])),
-    ),
-}
+CASES = {"paper": paper_scene, "moving": moving_scene}
 case_params = pytest.mark.parametrize("case", list(CASES), indirect=True)
 
 
