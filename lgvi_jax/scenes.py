@@ -15,7 +15,7 @@ import jax
 import numpy as np
 
 from . import so3
-from .integrators import EUCLIDEAN_METHODS, RIGID_METHODS, AbstractIntegrator
+from .integrators import EUCLIDEAN_METHODS, RIGID_METHODS, AbstractIntegrator, MethodTable
 from .models import CarPendulum, FreeRigidBody, HarmonicOscillator, HeavyTop
 from .models.rigid_bodies import PAPER_J, PAPER_OMEGA0, PAPER_R0, PAPER_RHO_C
 
@@ -34,7 +34,11 @@ class Parameter:
 
 @dataclasses.dataclass(frozen=True)
 class Scene:
-    """A named system: how to build it, which methods apply, what a run saves."""
+    """A named system: how to build it, which methods apply, what a run saves.
+
+    ``methods`` is a :class:`~lgvi_jax.integrators.MethodTable`: it lists the base methods
+    and also accepts their compositions, ``METHOD@ORDER`` (4, 6, 8) and
+    ``METHOD@SCHEME`` (:func:`~lgvi_jax.integrators.resolve_method`)."""
 
     name: str
     description: str
@@ -52,10 +56,15 @@ class Scene:
         raise ValueError(f"{self.name}: unknown parameter {name!r}; valid names: {valid}")
 
     def method(self, name: str) -> AbstractIntegrator:
-        if name not in self.methods:
-            valid = ", ".join(self.methods)
-            raise ValueError(f"{self.name}: unknown method {name!r}; valid methods: {valid}")
-        return self.methods[name]()
+        """The integrator called ``name``: a listed method, or ``METHOD@ORDER`` /
+        ``METHOD@SCHEME`` (e.g. ``lgvi@6``). ``ValueError`` naming the scene and the method
+        otherwise (unknown name or scheme, a base method that is not symmetric)."""
+        table = self.methods if isinstance(self.methods, MethodTable) else MethodTable(
+            self.methods)
+        try:
+            return table.resolve(name)
+        except ValueError as err:
+            raise ValueError(f"{self.name}: {err}") from None
 
     def build(self, overrides: Mapping[str, Any] | None = None) -> tuple[Any, Any]:
         """Return ``(model, state0)`` with the defaults replaced by ``overrides``.
@@ -152,8 +161,9 @@ SCENES: dict[str, Scene] = {
             Parameter("q0", 1, (1.0,), "initial position"),
             Parameter("p0", 1, (0.0,), "initial momentum"),
         ),
-        methods={k: EUCLIDEAN_METHODS[k] for k in ("rk4", "gl4", "verlet", "galerkin4",
-                                                     "gl6", "galerkin6")},
+        methods=MethodTable({k: EUCLIDEAN_METHODS[k] for k in ("rk4", "gl4", "verlet",
+                                                               "galerkin4", "gl6",
+                                                               "galerkin6")}),
         make=_oscillator_make,
         arrays=_oscillator_arrays,
     ),
@@ -166,7 +176,7 @@ SCENES: dict[str, Scene] = {
             Parameter("R0", 9, _flat(np.eye(3)), _R0_DOC),
             Parameter("omega0", 3, (0.1, 1.0, 0.1), "initial body angular velocity"),
         ),
-        methods=RIGID_METHODS,
+        methods=MethodTable(RIGID_METHODS),
         make=_free_body_make,
         arrays=_rigid_arrays,
     ),
@@ -182,7 +192,7 @@ SCENES: dict[str, Scene] = {
             Parameter("R0", 9, _flat(PAPER_R0), _R0_DOC),
             Parameter("omega0", 3, PAPER_OMEGA0, "initial body angular velocity"),
         ),
-        methods=RIGID_METHODS,
+        methods=MethodTable(RIGID_METHODS),
         make=_heavy_top_make,
         arrays=_rigid_arrays,
     ),
@@ -201,7 +211,7 @@ SCENES: dict[str, Scene] = {
             Parameter("R0", 9, _flat(PAPER_R0), _R0_DOC),
             Parameter("omega0", 3, PAPER_OMEGA0, "initial body angular velocity"),
         ),
-        methods=RIGID_METHODS,
+        methods=MethodTable(RIGID_METHODS),
         make=_car_pendulum_make,
         arrays=_rigid_arrays,
     ),

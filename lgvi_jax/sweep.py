@@ -125,6 +125,26 @@ class SweepConfig:
     def n_steps(self, dt: float) -> int:
         return round(self.t_final / dt)
 
+    def _check_composed(self, name: str, valid_methods: Sequence[str]) -> None:
+        """Accept ``METHOD@ORDER`` / ``METHOD@SCHEME`` for a listed ``METHOD`` (resolved
+        by the system's method table); raise :class:`SweepError` otherwise."""
+        from .integrators import parse_method
+        from .scenes import SCENES
+
+        try:
+            base, spec = parse_method(name)
+        except ValueError as err:
+            raise SweepError(f"--method: {err}") from None
+        if spec is not None and base in valid_methods and self.system in SCENES:
+            try:
+                SCENES[self.system].method(name)
+            except ValueError as err:
+                raise SweepError(f"--method: {err}") from None
+            return
+        raise SweepError(f"--method {name!r} is not available for {self.system}; "
+                         f"choose from: {', '.join(valid_methods)} (each also as "
+                         "METHOD@ORDER or METHOD@SCHEME when symmetric, e.g. lgvi@6)")
+
     def validate(self, valid_methods: Sequence[str] | None = None) -> None:
         """Raise :class:`SweepError` naming the first bad argument."""
         if not self.methods:
@@ -134,8 +154,7 @@ class SweepConfig:
         if valid_methods is not None:
             for m in self.methods:
                 if m not in valid_methods:
-                    raise SweepError(f"--method {m!r} is not available for {self.system}; "
-                                     f"choose from: {', '.join(valid_methods)}")
+                    self._check_composed(m, valid_methods)
         if not self.dts:
             raise SweepError("--dt: give at least one step (e.g. 0.01,0.005)")
         if not (math.isfinite(self.t_final) and self.t_final > 0):

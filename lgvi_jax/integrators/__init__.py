@@ -3,9 +3,20 @@
 from collections.abc import Callable
 
 from .base import AbstractIntegrator, StepInfo
+from .composition import (
+    DEFAULT_SCHEMES,
+    SCHEMES,
+    Composition,
+    CompositionScheme,
+    MethodTable,
+    compose,
+    parse_method,
+    resolve_method,
+)
 from .galerkin import GalerkinVI
 from .gauss_legendre import GaussLegendre
 from .lie import LGVI, AbstractLieVI, HamelVI
+from .lie_rk import RKMK4
 from .rk4 import RK4
 from .verlet import StormerVerlet
 
@@ -20,7 +31,10 @@ EUCLIDEAN_METHODS: dict[str, Callable[[], AbstractIntegrator]] = {
 }
 
 #: Methods for models on SO(3) x R^n. The first five are the paper's and the issue's;
-#: ``rk4`` and ``gl4`` integrate the continuous equations with R embedded as 9 numbers.
+#: ``rk4`` and ``gl4`` integrate the continuous equations with R embedded as 9 numbers;
+#: ``rkmk4`` is the explicit Lie-group Runge–Kutta–Munthe-Kaas method (R on SO(3)).
+#: Every symmetric method also exists composed to order 4, 6 or 8: ``resolve_method``
+#: accepts ``METHOD@ORDER`` and ``METHOD@SCHEME`` (``lgvi@6``, ``lgvi@kahan-li8``).
 RIGID_METHODS: dict[str, Callable[[], AbstractIntegrator]] = {
     "lgvi": LGVI,
     "hamel": lambda: HamelVI(map="exp", variation="paper"),
@@ -29,18 +43,28 @@ RIGID_METHODS: dict[str, Callable[[], AbstractIntegrator]] = {
     "rk4": RK4,
     "hamel-cayley-exact": lambda: HamelVI(map="cayley", variation="exact"),
     "gl4": lambda: GaussLegendre(stages=2),
+    "rkmk4": RKMK4,
 }
 
 __all__ = [
+    "DEFAULT_SCHEMES",
     "EUCLIDEAN_METHODS",
     "LGVI",
     "RIGID_METHODS",
     "RK4",
+    "RKMK4",
+    "SCHEMES",
     "AbstractIntegrator",
     "AbstractLieVI",
+    "Composition",
+    "CompositionScheme",
     "GalerkinVI",
     "GaussLegendre",
     "HamelVI",
+    "MethodTable",
     "StepInfo",
     "StormerVerlet",
+    "compose",
+    "parse_method",
+    "resolve_method",
 ]

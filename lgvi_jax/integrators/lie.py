@@ -155,9 +155,18 @@ class AbstractLieVI(AbstractIntegrator):
         return (mu - mu0, p - p0)
 
     def step(self, model, state: RigidState, dt):
+        new_state, info, _ = self.solve_step(model, state, dt)
+        return new_state, info
+
+    def solve_step(self, model, state: RigidState, dt, guess=None):
+        """One step with Newton started from ``guess = (ξ, u)`` (default: the current
+        velocities). Returns the new state, the step info and the solution ``(ξ, u)``, so
+        that a composition can warm-start its next sub-step from it. The guess changes only
+        the Newton iterates, not the solution."""
         R0, mu0, q0, p0 = state.R, state.mu, state.q, state.p
         h = jnp.asarray(dt, R0.dtype)
-        guess = model.velocities(R0, mu0, q0, p0)
+        if guess is None:
+            guess = model.velocities(R0, mu0, q0, p0)
         sol = newton_solve(self._residual, guess, (model, R0, mu0, q0, p0, h), self.newton)
         xi, u = sol.value
         w = h * xi
@@ -171,7 +180,8 @@ class AbstractLieVI(AbstractIntegrator):
         # invariance), so that momentum is conserved to the last bit instead of
         # accumulating the Newton residual.
         p1 = p0 + (gq0 + gq1)
-        return RigidState(R=R1, mu=mu1, q=q1, p=p1), StepInfo.from_solution(sol)
+        new_state = RigidState(R=R1, mu=mu1, q=q1, p=p1)
+        return new_state, StepInfo.from_solution(sol), (xi, u)
 
 
 class LGVI(AbstractLieVI):
