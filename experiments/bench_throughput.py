@@ -6,10 +6,11 @@ For every VI method, at h = 5e-3 over ``steps`` steps (10^4 by default), after c
 * a batch of ``batch`` trajectories (1024 by default; ``vmap``, sharded with ``shard_map``
   over every device in ``jax.devices()``: on a CPU-only machine, one XLA host device per
   core, see ``lgvi-jax bench --devices``),
-* the Numba baseline (``experiments/numba_lgvi.py``: the ``lgvi`` discrete equations,
-  hand-derived and reduced to three unknowns, in plain loops with a warm-started Newton;
-  the batch runs over all cores with ``prange``), in the same process and run. The
-  Hamel methods have no Numba counterpart yet; their rows compare with nothing.
+* the Numba baseline of the same method (``experiments/numba_lgvi.py`` for ``lgvi``,
+  ``experiments/numba_hamel.py`` for the Hamel methods: the discrete equations,
+  hand-derived and reduced to three unknowns, in plain loops with a warm-started Newton
+  (``lgvi``) or the engine's chord-then-Newton iteration (Hamel); the batch runs over all
+  cores, with ``prange`` or one GIL-free thread per core), in the same process and run.
 
 Reported: steps per second (best of ``repeats`` timed runs), compile time (ahead of time,
 ``lower().compile()``), XLA's memory estimate of the compiled batched program (arguments,

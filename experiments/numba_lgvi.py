@@ -21,6 +21,10 @@ complex-step Jacobian (exact to round-off: one complex residual per unknown), wa
 from the previous step's ``w``, stopping when ``|Δw| <= 1e-12 (h + |w|)`` componentwise
 (the tolerance of the JAX solver on ``ξ = w/h``). ``rollout_batch`` runs trajectories in
 parallel over all cores (``numba.prange``).
+
+The Hamel methods (``hamel``, ``hamel-cayley``, ``hamel-exact``) are in
+:mod:`numba_hamel` (their own derivation), dispatched by ``rollout``/``rollout_batch``
+below with the same parameters and return values.
 """
 
 from __future__ import annotations
@@ -29,9 +33,10 @@ import time
 
 import numba
 import numpy as np
+from lgvi_jax.experiments import numba_hamel as _hamel
 from numba import njit, prange
 
-METHODS = ("lgvi",)
+METHODS = ("lgvi", *_hamel.METHODS)
 
 
 def params_from_model(model) -> np.ndarray:
@@ -256,6 +261,8 @@ def _check(method):
 def rollout(method, R, mu, q, p, h, n_steps, params):
     """One trajectory: ``(R, mu, q, p, newton_iterations_total, result_code)``."""
     _check(method)
+    if method != "lgvi":
+        return _hamel.rollout(method, R, mu, q, p, h, n_steps, params)
     return _rollout(np.asarray(R, np.float64), np.asarray(mu, np.float64),
                     np.asarray(q, np.float64), np.asarray(p, np.float64), float(h),
                     int(n_steps), np.asarray(params, np.float64))
@@ -264,6 +271,8 @@ def rollout(method, R, mu, q, p, h, n_steps, params):
 def rollout_batch(method, R, mu, q, p, h, n_steps, params):
     """A batch (leading axis) in parallel over all cores."""
     _check(method)
+    if method != "lgvi":
+        return _hamel.rollout_batch(method, R, mu, q, p, h, n_steps, params)
     return _rollout_batch(np.ascontiguousarray(R, np.float64),
                           np.ascontiguousarray(mu, np.float64),
                           np.ascontiguousarray(q, np.float64),
@@ -278,8 +287,10 @@ def warmup() -> float:
                     1.1025, -0.25, -0.25, -0.25, 0.165])
     R = np.eye(3)
     mu, q, p = np.array([0.1, 0.2, 0.3]), np.zeros(2), np.zeros(2)
-    rollout("lgvi", R, mu, q, p, 1e-3, 2, prm)
-    rollout_batch("lgvi", R[None], mu[None], q[None], p[None], 1e-3, 2, prm)
+    # One compilation serves all Hamel methods (the method is a run-time code).
+    for name in ("lgvi", "hamel"):
+        rollout(name, R, mu, q, p, 1e-3, 2, prm)
+        rollout_batch(name, R[None], mu[None], q[None], p[None], 1e-3, 2, prm)
     return time.perf_counter() - start
 
 

@@ -29,3 +29,62 @@ def test_numba_lgvi_matches_the_engine(moving):
     # Failure is reported, not hidden: a step far too large for Newton.
     *_, code = nb.rollout("lgvi", R, mu * 1e4, q, p, 5e-3, 5, nb.params_from_model(model))
     assert code != 0
+
+
+def test_every_vi_of_the_benchmark_has_a_baseline():
+    assert nb.METHODS == ("lgvi", "hamel", "hamel-cayley", "hamel-exact")
+    with pytest.raises(ValueError, match="method must be one of"):
+        nb.rollout("rk4", np.eye(3), np.zeros(3), np.zeros(2), np.zeros(2), 5e-3, 1,
+                   nb.params_from_model(lj.CarPendulum()))
+
+
+@pytest.mark.parametrize("name", ["hamel", "hamel-cayley", "hamel-exact"])
+def test_numba_hamel_matches_the_engine(name):
+    from lgvi_jax.reference import moving_scene
+
+    # The paper's state and a moving cart (generic attitude, cart momentum); both scenes
+    # share their parameters, so one batch holds both.
+    models = (lj.CarPendulum(), moving_scene())
+    params = nb.params_from_model(models[0])
+    np.testing.assert_array_equal(nb.params_from_model(models[1]), params)
+    starts = [tuple(np.asarray(x) for x in (s.R, s.mu, s.q, s.p))
+              for s in (m.default_state() for m in models)]
+    ends = []
+    for model, (R, mu, q, p) in zip(models, starts, strict=True):
+        traj = lj.simulate(model, lj.RIGID_METHODS[name](), model.default_state(), 5e-3, 200)
+        assert traj.ok
+        ours = [np.asarray(x)[-1] for x in (traj.state.R, traj.state.mu, traj.state.q,
+                                            traj.state.p)]
+        ends.append(ours)
+        *theirs, its, code = nb.rollout(name, R, mu, q, p, 5e-3, 200, params)
+        # The engine's solver: chord iterations (one Jacobian per step), ~4 per step.
+        assert code == 0 and 2.0 <= its / 200 <= 5.0
+        # Same equations, solved to |Δξ| <= 1e-12 (1 + |ξ|) from different initial guesses:
+        # the end states agree to round-off.
+        for a, b in zip(ours, theirs, strict=True):
+            np.testing.assert_allclose(b, a, rtol=0, atol=1e-12)
+    batch = [np.stack(x) for x in zip(*starts, strict=True)]
+    *theirs, its, codes = nb.rollout_batch(name, *batch, 5e-3, 200, params)
+    assert np.all(codes == 0) and np.all(its >= 400)
+    for k, b in enumerate(theirs):
+        np.testing.assert_allclose(b, np.stack([e[k] for e in ends]), rtol=0, atol=1e-12)
+    # A large step (θ = h|ξ| ≈ 0.2): the closed-form branches of exp and dexp⁻¹ (the
+    # engine's compiled rollout is reused: dt is not static). Both solvers stop at the
+    # same tolerance from different iterates; a single step agrees to ~1e-15, 200 steps
+    # to the accumulated tolerance.
+    model, (R, mu, q, p) = models[1], starts[1]
+    traj = lj.simulate(model, lj.RIGID_METHODS[name](), model.default_state(), 0.04, 200)
+    *theirs, its, code = nb.rollout(name, R, mu, q, p, 0.04, 200, params)
+    assert traj.ok and code == 0
+    for a, b in zip((traj.state.R, traj.state.mu, traj.state.q, traj.state.p), theirs,
+                    strict=True):
+        np.testing.assert_allclose(b, np.asarray(a)[-1], rtol=0, atol=5e-11)
+    # Failure is reported, not hidden: a non-finite state, and (exp map: Newton cannot
+    # follow a rotation of ~250 rad per step; the Cayley map has a root there) a step far
+    # too large, which hits the iteration cap as in the engine.
+    R, mu, q, p = starts[0]
+    *_, code = nb.rollout(name, R, mu * np.nan, q, p, 5e-3, 5, params)
+    assert code == 2
+    if name != "hamel-cayley":
+        *_, code = nb.rollout(name, R, mu * 1e4, q, p, 5e-3, 5, params)
+        assert code == 1

@@ -1,0 +1,382 @@
+r"""Compiled-loop baselines for the throughput benchmark: the car-pendulum Hamel VIs
+(``hamel``, ``hamel-cayley``, ``hamel-exact``) in Numba, from hand-derived discrete
+equations. Dispatched by :mod:`numba_lgvi` (``rollout(name, ...)``).
+
+**Discrete Lagrangian** (:class:`lgvi_jax.HamelVI`). One step ``R_{k+1} = R_k F``,
+``F = τ(w)`` (``τ = exp`` or Cayley), ``ξ = w/h``, ``q_{k+1} = q_k + h u``; with the
+car-pendulum's ``T = ½(m+M)|v|² + ½ωᵀJω + m vᵀPR(ω×ρ_c)`` and ``U = −m g e3ᵀRρ_c``
+(``e3`` down),
+
+.. math::
+    G = h\Bigl[\tfrac12(m+M)|u|^2 + \tfrac12\xi^\top J\xi
+        + \tfrac m2\,u^\top P(R_k + R_{k+1})(\xi\times\rho_c)
+        + \tfrac{mg}2 e_3^\top(R_k + R_{k+1})\rho_c\Bigr],
+
+a function of ``R_k, R_{k+1}, w, q_k, q_{k+1}`` (``w`` and ``R_{k+1}`` independent
+arguments, as in the engine). Notation: ``ρ = ρ_c``, ``e = w × ρ`` (so ``hξ×ρ = e``),
+``a_k = R_kᵀPᵀu``, ``a_{k+1} = R_{k+1}ᵀPᵀu = Fᵀa_k``, ``b_k = R_kᵀe_3``,
+``b_{k+1} = R_{k+1}ᵀe_3``.
+
+**Derivatives.** The left-trivialised derivative of ``R ↦ cᵀRd`` is ``d × Rᵀc``
+(``cᵀR η̂ d = (Rᵀc)·(η×d)``), so
+
+.. math::
+    g_k = \tfrac m2\, e\times a_k + \tfrac h2 mg\,\rho\times b_k, \qquad
+    g_{k+1} = \tfrac m2\, e\times a_{k+1} + \tfrac h2 mg\,\rho\times b_{k+1},
+
+    g_w = \partial G/\partial w = J\xi + \tfrac m2\,\rho\times(a_k + a_{k+1}), \qquad
+    \partial G/\partial q_{k+1} = -\partial G/\partial q_k = (m+M)u
+        + \tfrac m{2h} P(R_k + R_{k+1})e.
+
+**Variations** ``δw = Aη_{k+1} − Bη_k``, in the form ``Bᵀg``, ``Aᵀg`` with ``x = w × g_w``:
+
+* paper (``hamel``: ``τ = exp``; ``hamel-cayley``: ``τ = cay``): ``A = I + ½ŵ``,
+  ``B = I − ½ŵ``, so ``Bᵀg_w = g_w + ½x``, ``Aᵀg_w = g_w − ½x``;
+* exact (``hamel-exact``, ``τ = exp``): ``A = dexp⁻¹_w = I + ½ŵ + d(θ)ŵ²``,
+  ``B = dexp⁻¹_w exp(w)ᵀ = dexp⁻¹_{−w} = I − ½ŵ + dŵ²`` (``J_l = exp(w)J_r``), so
+  ``Bᵀg_w = g_w + ½x + d w×x``, ``Aᵀg_w = g_w − ½x + d w×x``, with
+  ``d = 1/θ² − cot(θ/2)/(2θ)`` (Taylor ``1/12 + θ²/720 + …`` for ``θ < 0.1``).
+
+**Discrete Legendre transforms** ``μ_k = Bᵀg_w − g_k``, ``p_k = −∂G/∂q_k``,
+``μ_{k+1} = g_{k+1} + Aᵀg_w``, ``p_{k+1} = ∂G/∂q_{k+1}``:
+
+.. math::
+    p_k = (m+M)u + \tfrac m{2h}PR_k(I + F)e, \qquad
+    \mu_k = B^\top g_w - \tfrac m2\,e\times a_k - \tfrac h2 mg\,\rho\times b_k,
+
+    \mu_{k+1} = A^\top g_w + \tfrac m2\,e\times a_{k+1} + \tfrac h2 mg\,\rho\times b_{k+1},
+    \qquad p_{k+1} = p_k.
+
+Cross-check with the paper (eqs. 32–35): without the coupling (``m u`` terms dropped,
+``g_w = Jξ``) the paper variation gives ``Jω_k = Jξ + (h/2)ξ×Jξ − (h/2)M_k`` and
+``Jω_{k+1} = Jξ − (h/2)ξ×Jξ + (h/2)M_{k+1}`` with the gravity moment
+``M = mg ρ×Rᵀe_3``: the paper's scheme.
+
+**Reduction to three unknowns.** With ``F = I + c_1ŵ + c_2ŵ²`` (exp: ``c_1 = sinθ/θ``,
+``c_2 = (1−cosθ)/θ²``, Taylor branches for ``θ < 0.1`` as in :mod:`lgvi_jax.so3`; Cayley:
+``c_1 = 4/(4+θ²)``, ``c_2 = c_1/2``) and ``w·e = 0``: ``(I+F)e = (2 − c_2θ²)e +
+c_1 w×e``, so the ``p_k`` equation gives ``u`` explicitly for a given ``w``,
+``a_{k+1} = Fᵀa_k = a_k − c_1 w×a_k + c_2(w(w·a_k) − θ²a_k)``, and the ``μ_k`` equation is
+three equations in ``w`` only.
+
+**Solver.** The iteration of the JAX engine (``Newton(chord_steps=8)``), on ``w``: the
+Jacobian (complex step, one complex residual per unknown, exact to round-off; ``θ² = w·w``
+is the analytic continuation and the series/closed-form branch test reads its real part),
+inverted by cofactors, is computed at the warm start (the previous step's ``w``) and
+reused for up to 8 chord iterations; it is recomputed at the current iterate when an
+update fails to halve the previous one (Newton from then on). Stop when ``|Δw_i| <= 1e-12
+(h + |w_i|)`` (the JAX solver's ``|Δξ_i| <= 1e-12 (1 + |ξ_i|)`` with ``ξ = w/h``; ``u``,
+explicit in ``w``, is then as accurate). Typically 4 residuals and one Jacobian per step;
+``chord_steps=0`` gives plain Newton (3 iterations, three Jacobians: about half the speed).
+Then ``R_{k+1} = R_kF``, ``q_{k+1} = q_k + hu``, ``p_{k+1} = p_k`` and the ``μ_{k+1}``
+formula. Everything in scalars: no allocation inside the step loop. One compiled loop
+serves all three methods (the method is a run-time code) and both entry points; the batch
+runs one contiguous chunk per thread (``numba.get_num_threads()``) with the GIL released,
+which avoids a second, ``parallel=True`` compilation. Checked against the JAX engine in
+``tests/test_numba_baseline.py``.
+"""
+
+from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
+
+import numba
+import numpy as np
+from numba import njit
+
+#: method name -> integer code used inside the compiled loops
+CODES = {"hamel": 0, "hamel-cayley": 1, "hamel-exact": 2}
+METHODS = tuple(CODES)
+
+_TAYLOR_THETA_SQ = 1e-2  # as lgvi_jax.so3: Taylor branches for theta < 0.1
+
+
+@njit(cache=False, error_model="numpy")
+def _coeffs(t2, method):
+    """``(c_1, c_2, d)``: ``F = I + c_1ŵ + c_2ŵ²`` and the dexp⁻¹ coefficient ``d``
+    (``0`` unless ``method == 2``), for ``t2 = w·w`` (float or complex)."""
+    if method == 1:  # Cayley
+        k = 4.0 / (4.0 + t2)
+        return k, 0.5 * k, 0.0 * t2
+    if t2.real < _TAYLOR_THETA_SQ:
+        c1 = 1.0 + t2 * (-1.0 / 6 + t2 * (1.0 / 120 + t2 * (-1.0 / 5040 + t2 * (
+            1.0 / 362880 + t2 * (-1.0 / 39916800)))))
+        c2 = 0.5 + t2 * (-1.0 / 24 + t2 * (1.0 / 720 + t2 * (-1.0 / 40320 + t2 * (
+            1.0 / 3628800 + t2 * (-1.0 / 479001600)))))
+        if method == 2:
+            d = 1.0 / 12 + t2 * (1.0 / 720 + t2 * (1.0 / 30240 + t2 * (
+                1.0 / 1209600 + t2 * (1.0 / 47900160))))
+        else:
+            d = 0.0 * t2
+        return c1, c2, d
+    t = np.sqrt(t2)
+    sh = np.sin(0.5 * t)
+    c1 = np.sin(t) / t
+    c2 = 2.0 * sh * sh / t2
+    if method == 2:
+        d = 1.0 / t2 - np.cos(0.5 * t) / (2.0 * t * sh)
+    else:
+        d = 0.0 * t2
+    return c1, c2, d
+
+
+@njit(cache=False, error_model="numpy")
+def _eval(w0, w1, w2, R0, K0, K1, K2, px, py, h, prm, method):
+    """For the increment ``w``: the residual ``μ_k(w) − μ_0`` (``K = μ_0 + (h/2)mg ρ×b_k``),
+    ``u``, and what ``μ_{k+1}`` needs without gravity: ``Aᵀg_w + (m/2) e×a_{k+1}``, and
+    ``(c_1, c_2)``. Works for float64 and complex128 ``w``."""
+    m, M = prm[0], prm[1]
+    r0, r1, r2 = prm[3], prm[4], prm[5]
+    t2 = w0 * w0 + w1 * w1 + w2 * w2
+    c1, c2, d = _coeffs(t2, method)
+    # e = w × ρ;  (I + F) e = (2 − c2 θ²) e + c1 w × e   (w · e = 0)
+    e0 = w1 * r2 - w2 * r1
+    e1 = w2 * r0 - w0 * r2
+    e2 = w0 * r1 - w1 * r0
+    f0 = w1 * e2 - w2 * e1
+    f1 = w2 * e0 - w0 * e2
+    f2 = w0 * e1 - w1 * e0
+    s = 2.0 - c2 * t2
+    g0 = s * e0 + c1 * f0
+    g1 = s * e1 + c1 * f1
+    g2 = s * e2 + c1 * f2
+    # u = (p − (m/2h) P R0 (I + F) e) / (m + M)
+    k = 0.5 * m / h
+    im = 1.0 / (m + M)
+    u0 = (px - k * (R0[0, 0] * g0 + R0[0, 1] * g1 + R0[0, 2] * g2)) * im
+    u1 = (py - k * (R0[1, 0] * g0 + R0[1, 1] * g1 + R0[1, 2] * g2)) * im
+    # a_k = R0ᵀ Pᵀ u;  a_{k+1} = Fᵀ a_k = a_k − c1 w × a_k + c2 (w (w·a_k) − θ² a_k)
+    a0 = R0[0, 0] * u0 + R0[1, 0] * u1
+    a1 = R0[0, 1] * u0 + R0[1, 1] * u1
+    a2 = R0[0, 2] * u0 + R0[1, 2] * u1
+    wa = w0 * a0 + w1 * a1 + w2 * a2
+    b0 = a0 - c1 * (w1 * a2 - w2 * a1) + c2 * (w0 * wa - t2 * a0)
+    b1 = a1 - c1 * (w2 * a0 - w0 * a2) + c2 * (w1 * wa - t2 * a1)
+    b2 = a2 - c1 * (w0 * a1 - w1 * a0) + c2 * (w2 * wa - t2 * a2)
+    # g_w = J w / h + (m/2) ρ × (a_k + a_{k+1})
+    ih = 1.0 / h
+    hm = 0.5 * m
+    S0, S1, S2 = a0 + b0, a1 + b1, a2 + b2
+    gw0 = (prm[6] * w0 + prm[7] * w1 + prm[8] * w2) * ih + hm * (r1 * S2 - r2 * S1)
+    gw1 = (prm[9] * w0 + prm[10] * w1 + prm[11] * w2) * ih + hm * (r2 * S0 - r0 * S2)
+    gw2 = (prm[12] * w0 + prm[13] * w1 + prm[14] * w2) * ih + hm * (r0 * S1 - r1 * S0)
+    # x = w × g_w;  Bᵀ g_w = g_w + x/2 (+ d w × x),  Aᵀ g_w = g_w − x/2 (+ d w × x)
+    x0 = w1 * gw2 - w2 * gw1
+    x1 = w2 * gw0 - w0 * gw2
+    x2 = w0 * gw1 - w1 * gw0
+    y0 = gw0 + d * (w1 * x2 - w2 * x1)
+    y1 = gw1 + d * (w2 * x0 - w0 * x2)
+    y2 = gw2 + d * (w0 * x1 - w1 * x0)
+    # residual μ_k − μ_0 = Bᵀ g_w − (m/2) e × a_k − (h/2) m g ρ × b_k − μ_0
+    res0 = y0 + 0.5 * x0 - hm * (e1 * a2 - e2 * a1) - K0
+    res1 = y1 + 0.5 * x1 - hm * (e2 * a0 - e0 * a2) - K1
+    res2 = y2 + 0.5 * x2 - hm * (e0 * a1 - e1 * a0) - K2
+    # μ_{k+1} without gravity: Aᵀ g_w + (m/2) e × a_{k+1}
+    n0 = y0 - 0.5 * x0 + hm * (e1 * b2 - e2 * b1)
+    n1 = y1 - 0.5 * x1 + hm * (e2 * b0 - e0 * b2)
+    n2 = y2 - 0.5 * x2 + hm * (e0 * b1 - e1 * b0)
+    return res0, res1, res2, u0, u1, n0, n1, n2, c1, c2
+
+
+@njit(cache=False, error_model="numpy")
+def _inverse_jacobian(w0, w1, w2, R0, K0, K1, K2, px, py, h, prm, method, Ji):
+    """``Ji`` (9, row-major) = the inverse of the residual's Jacobian at ``w``: complex
+    step (one complex residual per column, exact to round-off), inverse by cofactors."""
+    eps = 1e-30
+    z0, z1, z2 = complex(w0, 0.0), complex(w1, 0.0), complex(w2, 0.0)
+    c = _eval(complex(w0, eps), z1, z2, R0, K0, K1, K2, px, py, h, prm, method)
+    j00, j10, j20 = c[0].imag / eps, c[1].imag / eps, c[2].imag / eps
+    c = _eval(z0, complex(w1, eps), z2, R0, K0, K1, K2, px, py, h, prm, method)
+    j01, j11, j21 = c[0].imag / eps, c[1].imag / eps, c[2].imag / eps
+    c = _eval(z0, z1, complex(w2, eps), R0, K0, K1, K2, px, py, h, prm, method)
+    j02, j12, j22 = c[0].imag / eps, c[1].imag / eps, c[2].imag / eps
+    k00 = j11 * j22 - j12 * j21
+    k01 = j12 * j20 - j10 * j22
+    k02 = j10 * j21 - j11 * j20
+    idet = 1.0 / (j00 * k00 + j01 * k01 + j02 * k02)
+    Ji[0] = idet * k00
+    Ji[1] = idet * (j02 * j21 - j01 * j22)
+    Ji[2] = idet * (j01 * j12 - j02 * j11)
+    Ji[3] = idet * k01
+    Ji[4] = idet * (j00 * j22 - j02 * j20)
+    Ji[5] = idet * (j02 * j10 - j00 * j12)
+    Ji[6] = idet * k02
+    Ji[7] = idet * (j01 * j20 - j00 * j21)
+    Ji[8] = idet * (j00 * j11 - j01 * j10)
+
+
+@njit(cache=False, error_model="numpy")
+def _step(R0, mu0, q0, p0, w, h, prm, method, chord_steps, Ji, R1, mu1, q1, p1):
+    """One step in place; ``w`` is the warm start and returns the solution. Returns
+    (iterations, code).
+
+    The solver of the JAX engine (``Newton(chord_steps=8)``): the Jacobian at the warm
+    start serves up to ``chord_steps`` iterations; it is recomputed at the current iterate
+    (from then on: Newton) when an update fails to halve the previous one or the chord
+    budget is spent. ``chord_steps = 0``: Newton (a fresh Jacobian every iteration)."""
+    m, g = prm[0], prm[2]
+    r0, r1, r2 = prm[3], prm[4], prm[5]
+    hg = 0.5 * h * m * g
+    # K = μ_0 + (h/2) m g ρ × b_k,  b_k = R0ᵀ e3 (third row of R0)
+    bx, by, bz = R0[2, 0], R0[2, 1], R0[2, 2]
+    K0 = mu0[0] + hg * (r1 * bz - r2 * by)
+    K1 = mu0[1] + hg * (r2 * bx - r0 * bz)
+    K2 = mu0[2] + hg * (r0 * by - r1 * bx)
+    px, py = p0[0], p0[1]
+    w0, w1, w2 = w[0], w[1], w[2]
+    code = 1
+    its = 0
+    since = chord_steps + 1  # iterations with the current Jacobian: none yet
+    prev = np.inf
+    for it in range(20):
+        its = it + 1
+        f0, f1, f2, _, _, _, _, _, _, _ = _eval(w0, w1, w2, R0, K0, K1, K2, px, py, h, prm,
+                                                method)
+        if since >= chord_steps:
+            _inverse_jacobian(w0, w1, w2, R0, K0, K1, K2, px, py, h, prm, method, Ji)
+            since = 0
+        since += 1
+        d0 = -(Ji[0] * f0 + Ji[1] * f1 + Ji[2] * f2)
+        d1 = -(Ji[3] * f0 + Ji[4] * f1 + Ji[5] * f2)
+        d2 = -(Ji[6] * f0 + Ji[7] * f1 + Ji[8] * f2)
+        w0 += d0
+        w1 += d1
+        w2 += d2
+        if not (np.isfinite(d0) and np.isfinite(d1) and np.isfinite(d2)):
+            code = 2
+            break
+        size = max(abs(d0) / (h + abs(w0)), abs(d1) / (h + abs(w1)),
+                   abs(d2) / (h + abs(w2))) * 1e12
+        if size <= 1.0:
+            code = 0
+            break
+        if size > 0.5 * prev:
+            since = chord_steps  # not contracting: a fresh Jacobian next iteration
+        prev = size
+    w[0], w[1], w[2] = w0, w1, w2
+    _, _, _, u0, u1, n0, n1, n2, c1, c2 = _eval(w0, w1, w2, R0, K0, K1, K2, px, py, h, prm,
+                                                method)
+    # R1 = R0 F,  F = I + c1 ŵ + c2 (w wᵀ − θ² I)
+    t2 = w0 * w0 + w1 * w1 + w2 * w2
+    dg = 1.0 - c2 * t2
+    F00, F11, F22 = dg + c2 * w0 * w0, dg + c2 * w1 * w1, dg + c2 * w2 * w2
+    F01, F10 = c2 * w0 * w1 - c1 * w2, c2 * w0 * w1 + c1 * w2
+    F02, F20 = c2 * w0 * w2 + c1 * w1, c2 * w0 * w2 - c1 * w1
+    F12, F21 = c2 * w1 * w2 - c1 * w0, c2 * w1 * w2 + c1 * w0
+    for i in range(3):
+        a, b, cc = R0[i, 0], R0[i, 1], R0[i, 2]
+        R1[i, 0] = a * F00 + b * F10 + cc * F20
+        R1[i, 1] = a * F01 + b * F11 + cc * F21
+        R1[i, 2] = a * F02 + b * F12 + cc * F22
+    q1[0] = q0[0] + h * u0
+    q1[1] = q0[1] + h * u1
+    p1[0] = px
+    p1[1] = py
+    # μ_{k+1} = Aᵀ g_w + (m/2) e × a_{k+1} + (h/2) m g ρ × b_{k+1}
+    bx, by, bz = R1[2, 0], R1[2, 1], R1[2, 2]
+    mu1[0] = n0 + hg * (r1 * bz - r2 * by)
+    mu1[1] = n1 + hg * (r2 * bx - r0 * bz)
+    mu1[2] = n2 + hg * (r0 * by - r1 * bx)
+    for i in range(3):
+        if not np.isfinite(mu1[i]):
+            code = 2
+    return its, code
+
+
+@njit(cache=False, nogil=True, error_model="numpy")
+def _rollout_range(R, mu, q, p, h, n_steps, prm, method, chord_steps, lo, hi, its, codes):
+    """Trajectories ``lo:hi`` of a batch, in place (``R, mu, q, p`` hold the initial
+    states and receive the final ones). Releases the GIL: the batch runs in threads."""
+    R0, mu0, q0, p0 = np.empty((3, 3)), np.empty(3), np.empty(2), np.empty(2)
+    R1, mu1, q1, p1 = np.empty((3, 3)), np.empty(3), np.empty(2), np.empty(2)
+    w = np.empty(3)
+    Ji = np.empty(9)
+    J = prm[6:15]
+    # First guess w = h J⁻¹ μ (cofactors); then each step warm-starts from the previous w.
+    k0 = J[4] * J[8] - J[5] * J[7]
+    k1 = J[5] * J[6] - J[3] * J[8]
+    k2 = J[3] * J[7] - J[4] * J[6]
+    s = h / (J[0] * k0 + J[1] * k1 + J[2] * k2)
+    for b in range(lo, hi):
+        for i in range(3):
+            for j in range(3):
+                R0[i, j] = R[b, i, j]
+            mu0[i] = mu[b, i]
+        for i in range(2):
+            q0[i] = q[b, i]
+            p0[i] = p[b, i]
+        w[0] = s * (k0 * mu0[0] + (J[2] * J[7] - J[1] * J[8]) * mu0[1]
+                    + (J[1] * J[5] - J[2] * J[4]) * mu0[2])
+        w[1] = s * (k1 * mu0[0] + (J[0] * J[8] - J[2] * J[6]) * mu0[1]
+                    + (J[2] * J[3] - J[0] * J[5]) * mu0[2])
+        w[2] = s * (k2 * mu0[0] + (J[1] * J[6] - J[0] * J[7]) * mu0[1]
+                    + (J[0] * J[4] - J[1] * J[3]) * mu0[2])
+        total = 0
+        code = 0
+        for _ in range(n_steps):
+            n_its, c = _step(R0, mu0, q0, p0, w, h, prm, method, chord_steps, Ji, R1, mu1,
+                             q1, p1)
+            total += n_its
+            if c != 0:
+                code = c
+                for i in range(3):
+                    mu0[i] = np.nan
+                break
+            R0, R1 = R1, R0
+            mu0, mu1 = mu1, mu0
+            q0, q1 = q1, q0
+            p0, p1 = p1, p0
+        for i in range(3):
+            for j in range(3):
+                R[b, i, j] = R0[i, j]
+            mu[b, i] = mu0[i]
+        for i in range(2):
+            q[b, i] = q0[i]
+            p[b, i] = p0[i]
+        its[b] = total
+        codes[b] = code
+
+
+#: chord iterations per Jacobian, as the JAX engine's default ``Newton(chord_steps=8)``
+CHORD_STEPS = 8
+
+
+def _prepare(R, mu, q, p, batch):
+    arrays = [np.array(x, np.float64, order="C", copy=True) for x in (R, mu, q, p)]
+    if not batch:
+        arrays = [x[None] for x in arrays]
+    n = arrays[0].shape[0]
+    return arrays, np.zeros(n, np.int64), np.zeros(n, np.int64)
+
+
+def rollout(method, R, mu, q, p, h, n_steps, params, chord_steps=CHORD_STEPS):
+    """One trajectory: ``(R, mu, q, p, newton_iterations_total, result_code)``."""
+    (R, mu, q, p), its, codes = _prepare(R, mu, q, p, False)
+    _rollout_range(R, mu, q, p, float(h), int(n_steps), np.asarray(params, np.float64),
+                   CODES[method], int(chord_steps), 0, 1, its, codes)
+    return R[0], mu[0], q[0], p[0], int(its[0]), int(codes[0])
+
+
+def rollout_batch(method, R, mu, q, p, h, n_steps, params, chord_steps=CHORD_STEPS):
+    """A batch (leading axis) in parallel over ``numba.get_num_threads()`` threads (the
+    compiled loop releases the GIL; one contiguous chunk per thread). Returns
+    ``(R, mu, q, p, iterations (B,), codes (B,))``."""
+    (R, mu, q, p), its, codes = _prepare(R, mu, q, p, True)
+    B = R.shape[0]
+    n_threads = max(1, min(numba.get_num_threads(), B))
+    bounds = [B * i // n_threads for i in range(n_threads + 1)]
+    args = (float(h), int(n_steps), np.asarray(params, np.float64), CODES[method],
+            int(chord_steps))
+
+    def run(i):
+        _rollout_range(R, mu, q, p, *args, bounds[i], bounds[i + 1], its, codes)
+
+    if n_threads == 1:
+        run(0)
+    else:
+        with ThreadPoolExecutor(n_threads) as pool:
+            list(pool.map(run, range(n_threads)))
+    return R, mu, q, p, its, codes
+
+
+__all__ = ["CHORD_STEPS", "CODES", "METHODS", "rollout", "rollout_batch"]
