@@ -225,3 +225,29 @@ def test_bad_settings_rejected():
         Newton(rtol=0.0, atol=0.0)
     with pytest.raises(ValueError, match="residuals"):
         newton_solve(lambda y, a: jnp.concatenate([y, y]), jnp.ones(2), None)
+
+
+def test_given_chord_matrix_reaches_the_same_root():
+    """``jac0``: the chord phase runs with the given matrix (an approximation of the
+    Jacobian) and reaches Newton's root; a useless matrix sends the solve to the Newton
+    fallback, which still converges; the derivative of the root ignores ``jac0``."""
+    a = jnp.array([2.0, 3.0])
+    y0 = jnp.array([1.2, 1.4])
+    full = newton_solve(cubic, y0, a, Newton())
+    approx = jnp.diag(3.0 * y0**2) * 1.1  # 10% off: a contracting chord
+    chord = newton_solve(cubic, y0, a, Newton(chord_steps=30), jac0=approx)
+    assert int(chord.result) == RESULTS.successful
+    # Both stop at an update <= 1e-12 relative; the chord's last update is tightened to
+    # 1e-14 of the tolerance's size, so both are at the root to round-off.
+    np.testing.assert_allclose(np.asarray(chord.value), np.asarray(full.value), rtol=1e-14)
+    assert int(chord.num_steps) > int(full.num_steps)  # linear, not quadratic
+    bad = newton_solve(cubic, y0, a, Newton(chord_steps=5), jac0=-jnp.eye(2))  # diverges
+    assert int(bad.result) == RESULTS.successful
+    np.testing.assert_allclose(np.asarray(bad.value), np.asarray(full.value), rtol=1e-14)
+    # The implicit derivative: dy/da = 1 / (3 y^2), whatever the chord matrix.
+    grad = jax.grad(lambda a: newton_solve(cubic, y0, a, Newton(chord_steps=30),
+                                           jac0=approx).value.sum())(a)
+    np.testing.assert_allclose(np.asarray(grad), 1.0 / (3.0 * np.cbrt(np.asarray(a)) ** 2),
+                               rtol=1e-12)
+    with pytest.raises(ValueError, match="jac0 must have shape"):
+        newton_solve(cubic, y0, a, Newton(chord_steps=3), jac0=jnp.eye(3))

@@ -146,17 +146,22 @@ class AbstractRigidBodyModel(eqx.Module):
         """Legendre transform ``(μ, p) = (∂L/∂ω, ∂L/∂v)``."""
         return jax.grad(self.lagrangian, argnums=(1, 3))(R, omega, q, v)
 
-    def velocities(self, R, mu, q, p) -> tuple[jax.Array, jax.Array]:
-        """Inverse Legendre transform ``(ω, v)`` (exact: the momenta are affine in the
-        velocities, so one linear solve with the mass matrix from autodiff)."""
+    def mass_matrix(self, R, q) -> tuple[jax.Array, jax.Array]:
+        """The Legendre map as an affine map of the flat velocities ``x = (ω, v)``:
+        ``(μ, p) = M x + c``; returns ``(M, c)``, ``M`` the kinetic-energy Hessian (symmetric
+        positive definite), by autodiff."""
         n = jnp.shape(q)[-1]
 
         def flat_momenta(x):
             return jnp.concatenate(self.momenta(R, x[:3], q, x[3:]))
 
         zero = jnp.zeros(3 + n, dtype=jnp.result_type(R))
-        at_rest = flat_momenta(zero)
-        mass = jax.jacfwd(flat_momenta)(zero)
+        return jax.jacfwd(flat_momenta)(zero), flat_momenta(zero)
+
+    def velocities(self, R, mu, q, p) -> tuple[jax.Array, jax.Array]:
+        """Inverse Legendre transform ``(ω, v)`` (exact: the momenta are affine in the
+        velocities, so one linear solve with the mass matrix from autodiff)."""
+        mass, at_rest = self.mass_matrix(R, q)
         x = small_solve(mass, jnp.concatenate([mu, p]) - at_rest)
         return x[:3], x[3:]
 
