@@ -1,0 +1,107 @@
+"""The work-precision harness: its error measurement on a small case (a known-order method
+shows its order), the metrics against independent computations, running without diffrax,
+and a quick run writing its files."""
+
+import json
+
+import numpy as np
+import pytest
+from lgvi_jax.experiments import work_precision as wp
+
+
+@pytest.fixture(scope="module")
+def oscillator():
+    return wp.make_system("oscillator")
+
+
+@pytest.mark.parametrize(("name", "order", "steps"),
+                         [("rk4", 4, (0.1, 0.05, 0.025)), ("verlet", 2, (0.1, 0.05, 0.025))])
+def test_harness_shows_the_order(oscillator, name, order, steps):
+    slope, errors = wp.observed_error_order(oscillator, name, steps, T=10.0)
+    # ±0.2: three steps of a pre-asymptotic fit (the lead's tolerance for this check).
+    assert slope == pytest.approx(order, abs=0.2), errors
+
+
+def test_metrics_match_independent_computation(oscillator):
+    method = wp.get_scene("oscillator").method("rk4")
+    raw = wp.run_ours(oscillator, "rk4", method, 0.05, 10.0, 100, repeats=1)
+    got = wp.measure(oscillator, raw, 10.0)
+    q = np.asarray(raw["states"].q)[:, 0]
+    p = np.asarray(raw["states"].p)[:, 0]
+    t = raw["t"]
+    assert got["position_error_t10"] == pytest.approx(abs(q[-1] - np.cos(10.0)), rel=1e-12)
+    energy = 0.5 * (q**2 + p**2)
+    assert got["energy_error_max"] == pytest.approx(np.max(np.abs(energy / 0.5 - 1)),
+                                                    rel=1e-9)
+    assert t[-1] == 10.0 and not got["failed"] and got["wall_s"] > 0
+
+
+def test_unknown_methods_are_skipped():
+    methods, skipped = wp.resolve_methods("oscillator", ["rk4", "no-such-method"])
+    assert list(methods) == ["rk4"] and skipped == ["no-such-method"]
+    with pytest.raises(ValueError, match="does not divide"):
+        wp._grid(10.0, 100, 0.03)
+
+
+def test_runs_without_diffrax(oscillator, monkeypatch):
+    monkeypatch.setattr(wp, "diffrax", None)
+    cfg = {**wp.config(True), "euclidean_methods": ["rk4"], "scipy_tols": {"DOP853": [1e-8]}}
+    res = wp._sweep_system(oscillator, cfg, log=lambda *_: None)
+    families = {r["family"] for r in res["runs"]}
+    assert families == {"ours", "scipy"}
+    scipy_run = next(r for r in res["runs"] if r["family"] == "scipy")
+    assert scipy_run["position_error_t10"] < 1e-6
+
+
+def test_diffrax_error_is_measured(oscillator):
+    pytest.importorskip("diffrax")
+    r = wp.measure(oscillator, wp.run_diffrax(oscillator, "tsit5", True, 1e-10, 10.0, 100, 1),
+                   10.0)
+    assert not r["failed"] and r["position_error_t10"] < 1e-7 and r["n_steps"] > 0
+
+
+def test_quick_run_writes_its_files(tmp_path):
+    res = wp.run(tmp_path, quick=True, log=lambda *_: None)
+    for name in res["files"]:
+        assert (tmp_path / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", name
+    assert {"work_precision_car-paper.png", "energy_vs_time.png",
+            "invariants_long_run.png"} <= set(res["files"])
+    saved = json.loads((tmp_path / "results.json").read_text())
+    env = saved["environment"]
+    assert env["jax"] and env["cpu_count"] and env["date"]
+    assert saved["regimes"] and all("ranking" in g for g in saved["regimes"])
+    summary = (tmp_path / "summary.md").read_text()
+    assert "Winners per regime" in summary and "When to choose" in summary
+    if wp.diffrax is None:
+        assert "diffrax is not installed" in summary
+
+
+def test_reproduce_full_runs_the_full_stages(tmp_path, monkeypatch):
+    import lgvi_jax.reproduce as rp
+
+    mine = [("work_precision", "lgvi_jax.experiments.work_precision"),
+            ("stability", "lgvi_jax.experiments.stability")]
+    assert all(stage in rp.FULL_STAGES for stage in mine)
+    calls = []
+
+    def fake_run(out, quick=False, log=print):
+        calls.append(out.name)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "summary.md").write_text(f"{out.name} summary\n")
+        (out / "results.json").write_text(json.dumps({"quick": quick}))
+
+    # The real stages are exercised by the quick runs above; here only the wiring.
+    monkeypatch.setattr(rp, "STAGES", [])
+    monkeypatch.setattr(rp, "FULL_STAGES", mine)  # other full stages have their own tests
+    monkeypatch.setattr(wp, "run", fake_run)
+    from lgvi_jax.experiments import stability
+
+    monkeypatch.setattr(stability, "run", fake_run)
+    rp.reproduce(tmp_path, quick=True, log=lambda *_: None)
+    assert calls == []  # full=False: the full stages are not run
+    rp.reproduce(tmp_path, quick=True, full=True, log=lambda *_: None)
+    assert calls == ["work_precision", "stability"]
+    logs = []
+    rp.reproduce(tmp_path, quick=True, full=True, log=logs.append)  # done: skipped
+    assert calls == ["work_precision", "stability"] and sum("already done" in m for m in logs) == 2
+    assert "stability summary" in (tmp_path / "README.md").read_text()
