@@ -6,25 +6,31 @@ energy and momentum checks are meaningless in float32.
 Layout: :mod:`lgvi_jax.so3` (Lie-group maths), :mod:`lgvi_jax.newton` (Newton solver),
 :mod:`lgvi_jax.models` (models defined by their energies), :mod:`lgvi_jax.integrators` (one
 file per method), :mod:`lgvi_jax.simulate` (rollouts), :mod:`lgvi_jax.diagnostics`,
-:mod:`lgvi_jax.plotting`, :mod:`lgvi_jax.scenes` and :mod:`lgvi_jax.cli`.
+:mod:`lgvi_jax.plotting`, :mod:`lgvi_jax.scenes`, :mod:`lgvi_jax.inertia` (physically
+consistent inertia parametrisation), :mod:`lgvi_jax.identify` (parameter fitting; imported on
+first use, as it needs optax) and :mod:`lgvi_jax.cli`.
 """
 
 import jax
 
 jax.config.update("jax_enable_x64", True)
 
-from . import diagnostics, so3  # noqa: E402
+from . import diagnostics, inertia, so3  # noqa: E402
 from .integrators import (  # noqa: E402
     EUCLIDEAN_METHODS,
     LGVI,
     RIGID_METHODS,
     RK4,
+    RKMK4,
     AbstractIntegrator,
+    Composition,
     GalerkinVI,
     GaussLegendre,
     HamelVI,
     StepInfo,
     StormerVerlet,
+    compose,
+    resolve_method,
 )
 from .models import (  # noqa: E402
     AbstractEuclideanModel,
@@ -53,10 +59,12 @@ __all__ = [
     "RESULTS",
     "RIGID_METHODS",
     "RK4",
+    "RKMK4",
     "AbstractEuclideanModel",
     "AbstractIntegrator",
     "AbstractRigidBodyModel",
     "CarPendulum",
+    "Composition",
     "FreeRigidBody",
     "GalerkinVI",
     "GaussLegendre",
@@ -73,10 +81,23 @@ __all__ = [
     "StormerVerlet",
     "Trajectory",
     "__version__",
+    "compose",
     "diagnostics",
     "final_state",
+    "identify",
+    "inertia",
     "newton_solve",
+    "resolve_method",
     "simulate",
     "simulate_timed",
     "so3",
 ]
+
+
+def __getattr__(name: str):
+    # lgvi_jax.identify on first use (it imports optax, which the rest does not need).
+    if name == "identify":
+        import importlib
+
+        return importlib.import_module(".identify", __name__)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

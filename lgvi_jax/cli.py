@@ -1,4 +1,4 @@
-"""Command-line interface: ``lgvi-jax {simulate, sweep, bench, reproduce, info}``.
+"""Command-line interface: ``lgvi-jax {simulate, sweep, bench, fit, reproduce, info}``.
 
 A thin layer over the library. Bad input exits with status 2 and a one-line message (no
 traceback); a run whose integration fails still writes its output (with the failure
@@ -128,11 +128,12 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     from .simulate import simulate_timed
 
     scene = get_scene(args.system)
-    if args.method not in scene.methods:
-        raise UsageError(
-            f"--method {args.method!r} is not available for {scene.name}; "
-            f"choose from: {', '.join(scene.methods)}"
-        )
+    try:
+        method = scene.method(args.method)
+    except ValueError as err:
+        detail = str(err).removeprefix(f"{scene.name}: ")
+        raise UsageError(f"--method {args.method!r} is not available for {scene.name}: "
+                         f"{detail}") from None
     n_steps = steps_for(args.dt, args.t_final)
     if n_steps % args.save_every:
         raise UsageError(
@@ -147,7 +148,6 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     except ValueError as err:
         raise UsageError(str(err)) from None
     _check_writable_file(out)  # last: nothing is created on disk for a rejected command
-    method = scene.method(args.method)
     traj, timing = simulate_timed(
         model, method, state0, args.dt, n_steps, save_every=args.save_every
     )
@@ -202,7 +202,7 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
         raise UsageError(f"--out {out}: cannot create folder: {err.strerror}") from None
     if not os.access(out, os.W_OK):
         raise UsageError(f"--out {out}: folder is not writable")
-    reproduce(out, quick=args.quick, force=args.force)
+    reproduce(out, quick=args.quick, force=args.force, full=args.full)
     return 0
 
 
@@ -311,7 +311,121 @@ def cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+def write_json_atomic(path: Path, obj: Any) -> None:
+    """Write ``obj`` as JSON to ``path`` through a temporary file and a rename."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w") as fh:
+            json.dump(obj, fh, indent=1)
+            fh.write("\n")
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+#: ``--init`` names of ``lgvi-jax fit`` (the initial state's R0 and q0 come from the data).
+FIT_INIT_NAMES = ("J", "rho_c", "m", "M", "g", "omega0", "v0")
+
+
+def cmd_fit(args: argparse.Namespace) -> int:
+    from .identify import FITTABLE, fit, load_observations
+    from .scenes import get_scene
+
+    scene = get_scene(args.system)
+    if args.method not in scene.methods:
+        raise UsageError(f"--method {args.method!r} is not available for {scene.name}; "
+                         f"choose from: {', '.join(scene.methods)}")
+    if not math.isfinite(args.dt) or args.dt <= 0:
+        raise UsageError(f"--dt must be a finite number > 0, got {args.dt!r}")
+    names = _csv_list(args.fit, str, "--fit")
+    if not names:
+        raise UsageError(f"--fit {args.fit!r}: name at least one of {', '.join(FITTABLE)}")
+    for name in names:
+        if name not in FITTABLE:
+            raise UsageError(f"--fit {name!r}: choose from {', '.join(FITTABLE)}")
+    if len(set(names)) != len(names):
+        raise UsageError(f"--fit {args.fit!r}: a name is given twice")
+    if args.lr is not None and not (math.isfinite(args.lr) and args.lr > 0):
+        raise UsageError(f"--lr must be a finite number > 0, got {args.lr!r}")
+    out = Path(args.out)
+    if out.suffix != ".json":
+        raise UsageError(f"--out {out}: expected a file name ending in .json")
+    init = {}
+    for name, value in parse_set(args.init).items():
+        if name not in FIT_INIT_NAMES:
+            raise UsageError(f"--init {name}: choose from {', '.join(FIT_INIT_NAMES)} (the "
+                             "initial attitude and cart position come from --data)")
+        init[name] = value
+    data = Path(args.data)
+    if not data.is_file():
+        raise UsageError(f"--data {data}: no such file")
+    try:
+        obs = load_observations(data, args.dt)
+    except ValueError as err:
+        raise UsageError(f"--data {err}") from None
+    try:
+        overrides = {k: v for k, v in init.items()}
+        overrides.update(R0=np.ravel(np.asarray(obs.R0)), q0=np.asarray(obs.q0))
+        for key in ("omega0", "v0"):
+            overrides.setdefault(key, np.asarray(getattr(obs, key)))
+        model, _ = scene.build(overrides)
+    except ValueError as err:
+        raise UsageError(f"--init: {err}") from None
+    if "omega0" in init and "omega0" not in names:
+        raise UsageError("--init omega0 is only allowed with --fit omega0 (otherwise the "
+                         "observed initial velocity is used)")
+    if "v0" in init and "v0" not in names:
+        raise UsageError("--init v0 is only allowed with --fit v0 (otherwise the observed "
+                         "initial velocity is used)")
+    _check_writable_file(out)
+    # fit() replaces the model's initial state by the observations'; a given --init
+    # omega0/v0 is the starting value of the fitted velocity instead.
+    from .identify import Observations
+
+    obs = Observations(t=obs.t, R=obs.R, q=obs.q, R0=obs.R0, omega0=model.omega0,
+                       q0=obs.q0, v0=model.v0)
+    try:
+        result = fit(obs, args.dt, names=names, model=model, method=args.method,
+                     optimizer=args.optimizer, iterations=args.iterations, lr=args.lr,
+                     progress=not args.json)
+    except ValueError as err:
+        raise UsageError(str(err)) from None
+    report = {
+        "system": scene.name,
+        "data": str(data),
+        **result.to_json(),
+        "observations": int(np.size(obs.t)),
+        "init": {k: v.tolist() for k, v in init.items()},
+    }
+    write_json_atomic(out, report)
+    if args.json:
+        print(json.dumps({k: v for k, v in report.items() if k != "loss_history"}))
+    else:
+        J = np.asarray(report["values"]["J"])
+        rows = "\n".join("  " + "  ".join(f"{x:12.6g}" for x in row) for row in J)
+        fitted = ", ".join(f"{k} = {np.round(report['values'][k], 6).tolist()}"
+                           for k in names if k != "J")
+        print(f"{scene.name} / {result.method}: fitted {', '.join(names)} to "
+              f"{report['observations']} observations with {args.optimizer}, "
+              f"{result.iterations} iterations ({result.stopped}) in "
+              f"{result.wall_time_s:.3g} s\n"
+              f"loss {result.loss_initial:.4e} -> {result.loss_final:.4e}")
+        if "J" in names:
+            print(f"J about the pivot:\n{rows}")
+        if fitted:
+            print(fitted)
+        print(f"wrote {out}")
+    if result.stopped == "non-finite":
+        print(f"{PROG} fit: stopped: a rollout failed (non-finite values); wrote the last "
+              "good iterate", file=sys.stderr)
+        return 1
+    return 0
+
+
 def cmd_info(args: argparse.Namespace) -> int:
+    from .integrators import SCHEMES
     from .scenes import SCENES
 
     for scene in SCENES.values():
@@ -319,6 +433,9 @@ def cmd_info(args: argparse.Namespace) -> int:
         print("  methods:")
         for name, make in scene.methods.items():
             print(f"    {name:<11} {make().describe()}")
+        composable = [n for n, make in scene.methods.items() if make().symmetric]
+        print(f"    METHOD@ORDER (4, 6, 8) or METHOD@SCHEME ({', '.join(SCHEMES)}): a "
+              f"symmetric composition of {', '.join(composable)}")
         print("  --set parameters:")
         for p in scene.parameters:
             default = ",".join(f"{v:g}" for v in p.default)
@@ -337,7 +454,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     sim = sub.add_parser("simulate", help="integrate one system with one method")
     sim.add_argument("system", choices=list(SCENES), help="the system to integrate")
-    sim.add_argument("--method", required=True, help="integrator (see `lgvi-jax info`)")
+    sim.add_argument("--method", required=True,
+                     help="integrator, or METHOD@ORDER for a composition, e.g. lgvi@6 "
+                     "(see `lgvi-jax info`)")
     sim.add_argument("--dt", required=True, type=_float, help="step size (> 0)")
     sim.add_argument("--t-final", required=True, type=_float, help="final time, a multiple of dt")
     sim.add_argument("--save-every", type=_positive_int, default=1, metavar="K",
@@ -354,6 +473,9 @@ def build_parser() -> argparse.ArgumentParser:
                      help="shorter runs (for smoke tests); the figures keep their layout")
     rep.add_argument("--force", action="store_true",
                      help="recompute stages whose results already exist in the folder")
+    rep.add_argument("--full", action="store_true",
+                     help="also the work-precision and stability studies (about 15 min on 2 "
+                     "cores; diffrax from the `bench` extra for the peer solvers)")
     rep.set_defaults(func=cmd_reproduce)
 
     sw = sub.add_parser(
@@ -404,6 +526,35 @@ def build_parser() -> argparse.ArgumentParser:
     be.add_argument("--devices", default="auto", metavar="auto|N",
                     help="host devices on a CPU-only machine (default: one per core)")
     be.set_defaults(func=cmd_bench)
+
+    fi = sub.add_parser(
+        "fit", help="fit parameters (inertia, ...) to an observed trajectory",
+        description="Fit the car-pendulum's parameters to observed attitudes and cart "
+        "positions (OBS.npz: t (n,), R (n,3,3), q (n,2), R0, omega0, q0, v0) by "
+        "differentiating a variational integrator's rollout; writes FIT.json.")
+    fi.add_argument("system", choices=["car-pendulum"], help="the system")
+    fi.add_argument("--data", required=True, metavar="OBS.npz", help="observations (.npz)")
+    fi.add_argument("--method", required=True, help="integrator (see `lgvi-jax info`)")
+    fi.add_argument("--dt", required=True, type=_float,
+                    help="step size; every observation time must be a multiple of it")
+    fi.add_argument("--fit", required=True, metavar="NAME[,NAME...]",
+                    help="quantities to fit: J, rho_c, m, M, g, omega0, v0")
+    fi.add_argument("--init", action="append", metavar="NAME=V1[,V2...]",
+                    help="starting value of a fitted quantity, or value of a fixed one "
+                    "(repeatable; J: 9 numbers row-major, about the pivot; default: the "
+                    "paper's values)")
+    fi.add_argument("--iterations", type=_positive_int, default=300, metavar="N",
+                    help="most optimiser iterations (default 300)")
+    fi.add_argument("--lr", type=_float, default=None,
+                    help="learning rate (adam, default 1e-2), first-step scale (lbfgs, "
+                    "default 1), or initial damping (gauss-newton, default 1e-3)")
+    fi.add_argument("--optimizer", choices=["lbfgs", "adam", "gauss-newton"],
+                    default="lbfgs", help="optax L-BFGS (default), optax Adam, or "
+                    "Levenberg-Marquardt with forward-mode Jacobians")
+    fi.add_argument("--out", required=True, metavar="FIT.json", help="output file (.json)")
+    fi.add_argument("--json", action="store_true",
+                    help="print a one-object JSON summary (no progress bar)")
+    fi.set_defaults(func=cmd_fit)
 
     info = sub.add_parser("info", help="list systems, methods and parameters")
     info.set_defaults(func=cmd_info)

@@ -13,12 +13,23 @@ into an :class:`IntegrationError` naming the step, the time and the residual.
 
 ``model``, ``method`` and ``state0`` are pytrees and ``dt`` is a traced scalar, so the
 rollout can be differentiated (``jax.grad``, ``jax.jvp``) and batched (``jax.vmap``) with
-respect to parameters, initial state and step without recompiling; only ``n_steps`` and
-``save_every`` are compile-time constants.
+respect to parameters, initial state and step without recompiling; only ``n_steps``,
+``save_every`` and ``checkpoint_every`` are compile-time constants.
+
+**Memory of reverse mode.** ``jax.grad`` of a plain rollout stores the residuals of every
+step (the linearisation points of the Newton solves and of the step maps), so its memory
+grows like ``n_steps``. With ``checkpoint_every=K`` the rollout is a scan over ``n_steps/K``
+segments of ``K`` steps, each wrapped in ``jax.checkpoint``: the backward pass keeps only
+the state at the start of each segment and recomputes one segment's steps at a time, so
+memory grows like ``n_steps/K + K`` (optimal near ``K = sqrt(n_steps)``) at the price of a
+second forward pass (binomial checkpointing with one level; Griewank & Walther,
+*Evaluating Derivatives*, SIAM 2008, ch. 12). The values are identical.
+``experiments/bench_gradients.py`` measures it.
 """
 
 from __future__ import annotations
 
+import functools
 import time
 from typing import Any
 
@@ -150,7 +161,8 @@ def _record(model, state):
 
 
 @eqx.filter_jit
-def _rollout(model, method, state0, dt, t0, n_steps: int, save_every: int) -> Trajectory:
+def _rollout(model, method, state0, dt, t0, n_steps: int, save_every: int,
+             checkpoint_every: int | None = None) -> Trajectory:
     n_blocks = n_steps // save_every
     int0 = jnp.asarray(0, jnp.int32)
 
@@ -180,9 +192,21 @@ def _rollout(model, method, state0, dt, t0, n_steps: int, save_every: int) -> Tr
         jnp.asarray(-1, jnp.int32),
         jnp.zeros((), dt.dtype),
     )
-    (_, _, code, failed_step, failed_res), saved = jax.lax.scan(
-        one_block, init, None, length=n_blocks
-    )
+    if checkpoint_every is None:
+        (_, _, code, failed_step, failed_res), saved = jax.lax.scan(
+            one_block, init, None, length=n_blocks
+        )
+    else:
+        blocks_per_segment = checkpoint_every // save_every
+
+        @functools.partial(jax.checkpoint, prevent_cse=False)
+        def one_segment(carry, _):
+            return jax.lax.scan(one_block, carry, None, length=blocks_per_segment)
+
+        (_, _, code, failed_step, failed_res), saved = jax.lax.scan(
+            one_segment, init, None, length=n_steps // checkpoint_every
+        )
+        saved = jax.tree.map(lambda x: x.reshape((n_blocks, *x.shape[2:])), saved)
     first = (*_record(model, state0), int0, int0)
 
     def prepend(x0, xs):
@@ -208,6 +232,18 @@ def _rollout(model, method, state0, dt, t0, n_steps: int, save_every: int) -> Tr
 def _check_int(name: str, value: Any, minimum: int = 1) -> None:
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
         raise ValueError(f"simulate: {name} must be an integer >= {minimum}, got {value!r}")
+
+
+def _check_checkpoint(checkpoint_every, n_steps: int, save_every: int) -> int | None:
+    if checkpoint_every is None:
+        return None
+    _check_int("checkpoint_every", checkpoint_every)
+    if checkpoint_every % save_every or n_steps % checkpoint_every:
+        raise ValueError(
+            f"simulate: checkpoint_every ({checkpoint_every}) must be a multiple of "
+            f"save_every ({save_every}) and divide n_steps ({n_steps})"
+        )
+    return int(checkpoint_every)
 
 
 def _prepare(model, method, state0, dt, n_steps, save_every, t0):
@@ -244,6 +280,7 @@ def simulate(
     save_every: int = 1,
     t0: float | jax.Array = 0.0,
     throw: bool = False,
+    checkpoint_every: int | None = None,
 ) -> Trajectory:
     """Integrate ``model`` with ``method`` for ``n_steps`` steps of size ``dt``.
 
@@ -258,6 +295,10 @@ def simulate(
         t0: the initial time.
         throw: raise :class:`IntegrationError` (naming the step and residual) on failure,
             instead of only reporting it in ``Trajectory.result``.
+        checkpoint_every: if set, reverse-mode differentiation stores the state only every
+            ``checkpoint_every`` steps and recomputes in between (module docstring): memory
+            ``~ n_steps/K + K`` instead of ``~ n_steps``. A multiple of ``save_every`` that
+            divides ``n_steps``. No effect on the values or on forward mode.
 
     Returns:
         A :class:`Trajectory` with ``n_steps // save_every + 1`` saved states.
@@ -266,7 +307,9 @@ def simulate(
         ValueError: naming the argument, for invalid input.
         IntegrationError: with ``throw=True``, if a step fails.
     """
-    traj = _rollout(*_prepare(model, method, state0, dt, n_steps, save_every, t0))
+    args = _prepare(model, method, state0, dt, n_steps, save_every, t0)
+    checkpoint_every = _check_checkpoint(checkpoint_every, args[5], args[6])
+    traj = _rollout(*args, checkpoint_every=checkpoint_every)
     if throw:
         traj = traj.raise_if_failed()
     return traj

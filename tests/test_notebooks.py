@@ -35,3 +35,12 @@ def test_notebook_executes(path, tmp_path):
         # Central difference with step 1e-5: truncation ~1e-10, cancellation ~1e-11.
         assert values["autodiff"] == pytest.approx(values["central difference"], rel=1e-6)
         assert "hamel-exact" in text and "all 4000 steps succeeded" in text
+    if path.name == "inertia_fitting.ipynb":
+        values = {line.split(":")[0].strip(): line.split(":", 1)[1].strip()
+                  for line in text.splitlines() if ":" in line}
+        # Noise-free fit over 2 s at h = 0.01 from the paper's inertia (20% off).
+        assert float(values["start relative error"]) > 0.15
+        assert float(values["relative error of J_c"]) <= 0.01
+        assert values["physical"] == "True"
+        assert values["smallest principal moment > 0"] == "True"
+        assert values["triangle inequalities hold"] == "True"

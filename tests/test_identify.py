@@ -1,0 +1,360 @@
+"""Differentiable trajectories and inertia identification (lgvi_jax.identify, the Newton
+adjoints, checkpointed rollouts, ``lgvi-jax fit``).
+
+Setting of the issue: observations every 0.05 s over 5 s from the independent reference
+(hand-derived equations, DOP853 at 1e-13) for a pendulum whose inertia about the mass
+centre is diag(0.03, 0.05, 0.04) kg m², everything else as in the paper.
+"""
+
+import json
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+pytest.importorskip("scipy", reason="the reference needs SciPy (the 'dev' extra)")
+
+import lgvi_jax as lj
+from lgvi_jax import identify, so3
+from lgvi_jax.cli import main
+from lgvi_jax.inertia import centroidal_inertia, is_physical, pivot_inertia
+from lgvi_jax.models.rigid_bodies import PAPER_RHO_C
+
+J_C_TRUE = np.diag([0.03, 0.05, 0.04])
+J_TRUE = np.asarray(pivot_inertia(J_C_TRUE, 1.0, PAPER_RHO_C))
+TIMES = np.arange(101) * 0.05  # every 0.05 s over 5 s
+FIT_DT = 0.01  # 500 steps over 5 s; the step's bias in J_c is ~0.8% (measured, < 1%)
+GRAD_DT, GRAD_STEPS = 0.005, 1000  # 10^3 steps over the same 5 s
+
+
+@pytest.fixture(scope="module")
+def clean_data():
+    return identify.observe(lj.CarPendulum(J=J_TRUE), TIMES)
+
+
+@pytest.fixture(scope="module")
+def noisy_data():
+    return identify.observe(lj.CarPendulum(J=J_TRUE), TIMES, noise=1e-3, seed=0)
+
+
+def rel_error(J_c):
+    return np.linalg.norm(np.asarray(J_c) - J_C_TRUE) / np.linalg.norm(J_C_TRUE)
+
+
+# ---------------------------------------------------------------------------------------
+# Gradients through 10^3 steps
+# ---------------------------------------------------------------------------------------
+
+
+def trajectory_loss(model, state0, method, R_obs, q_obs):
+    traj = lj.simulate(model, method, state0, GRAD_DT, GRAD_STEPS, save_every=10)
+    return jnp.mean(0.5 * jnp.sum((traj.state.R - R_obs) ** 2, axis=(-2, -1))
+                    + jnp.sum((traj.state.q - q_obs) ** 2, axis=-1))
+
+
+_loss = eqx.filter_jit(trajectory_loss)
+_grad = eqx.filter_jit(eqx.filter_grad(
+    lambda ms, method, R, q: trajectory_loss(ms[0], ms[1], method, R, q)))
+
+
+def _directions():
+    """Perturbation directions, each scaled to its quantity, one per parameter group and
+    initial-state component; ``R`` is perturbed on SO(3), ``R0 exp(ε η̂)``."""
+    rng = np.random.default_rng(0)
+    sym = rng.normal(size=(3, 3))
+    return {
+        "J": ("model", "J", 0.01 * (sym + sym.T) / 2),
+        "rho_c": ("model", "rho_c", 0.01 * rng.normal(size=3)),
+        "m": ("model", "m", np.asarray(0.01)),
+        "M": ("model", "M", np.asarray(0.01)),
+        "g": ("model", "g", np.asarray(0.01)),
+        "R0": ("state", "R", 0.01 * rng.normal(size=3)),
+        "mu0": ("state", "mu", 0.01 * rng.normal(size=3)),
+        "q0": ("state", "q", 0.01 * rng.normal(size=2)),
+        "p0": ("state", "p", 0.01 * rng.normal(size=2)),
+    }
+
+
+def _shift(model, state0, where, field, d, eps):
+    if where == "model":
+        return eqx.tree_at(lambda x: getattr(x, field), model,
+                           getattr(model, field) + eps * jnp.asarray(d)), state0
+    if field == "R":
+        return model, eqx.tree_at(lambda x: x.R, state0, state0.R @ so3.exp(eps * jnp.asarray(d)))
+    return model, eqx.tree_at(lambda x: getattr(x, field), state0,
+                              getattr(state0, field) + eps * jnp.asarray(d))
+
+
+def _directional(grads, state0, where, field, d):
+    g_model, g_state = grads
+    if where == "model":
+        return float(jnp.sum(getattr(g_model, field) * d))
+    if field == "R":  # d/dε L(R0 exp(ε η̂)) = <∂L/∂R, R0 η̂>
+        return float(jnp.sum(g_state.R * (state0.R @ so3.hat(jnp.asarray(d)))))
+    return float(jnp.sum(getattr(g_state, field) * d))
+
+
+@pytest.fixture(scope="module")
+def gradient_setup(clean_data):
+    model = lj.CarPendulum()  # differentiate at the paper's parameters (not the truth)
+    state0 = model.default_state()
+    R_obs = jnp.asarray(clean_data["R"])
+    q_obs = jnp.asarray(clean_data["q"])
+    grads = {}
+    for name in ("lgvi", "hamel-exact"):
+        method = lj.RIGID_METHODS[name]()
+        grads[name] = _grad((model, state0), method, R_obs, q_obs)
+    return model, state0, R_obs, q_obs, grads
+
+
+@pytest.mark.parametrize("method_name", ["lgvi", "hamel-exact"])
+def test_gradient_through_1000_steps_matches_central_differences(gradient_setup, method_name):
+    """Reverse mode through 10^3 implicit steps (the Newton solves by the implicit function
+    theorem) against central differences, for every parameter and the initial state."""
+    model, state0, R_obs, q_obs, grads = gradient_setup
+    method = lj.RIGID_METHODS[method_name]()
+
+    def f(eps, where, field, d):
+        return float(_loss(*_shift(model, state0, where, field, d, eps), method, R_obs, q_obs))
+
+    for name, (where, field, d) in _directions().items():
+        exact = _directional(grads[method_name], state0, where, field, d)
+        # FD step: the central difference's O(ε²) truncation is ~1e-4 relative at ε = 1e-2
+        # (times the direction's 1e-2 scale), too much for 1e-6; smaller ε meets the
+        # rollout's noise (Newton stops at 1e-12, which over 10^3 steps gives ~1e-13 in
+        # the loss, i.e. ~1e-13/ε in the difference). Richardson extrapolation of ε and
+        # ε/2 cancels the ε² term: truncation O(ε⁴) ~ 1e-8 with the noise still ~1e-10.
+        eps = 1e-2
+        d1 = (f(eps, where, field, d) - f(-eps, where, field, d)) / (2 * eps)
+        d2 = (f(eps / 2, where, field, d) - f(-eps / 2, where, field, d)) / eps
+        fd = (4 * d2 - d1) / 3
+        assert fd == pytest.approx(exact, rel=1e-6), name
+
+
+def test_jvp_equals_gradient_dot_direction(gradient_setup):
+    """Forward mode through the same 10^3 steps: jvp(L)(v) = <grad L, v>."""
+    model, state0, R_obs, q_obs, grads = gradient_setup
+    method = lj.LGVI()
+    dirs = _directions()
+    d_model = jax.tree.map(jnp.zeros_like, model)
+    d_state = jax.tree.map(jnp.zeros_like, state0)
+    for where, field, d in dirs.values():
+        if where == "model":
+            d_model = eqx.tree_at(lambda x, f=field: getattr(x, f), d_model, jnp.asarray(d))
+        elif field != "R":
+            d_state = eqx.tree_at(lambda x, f=field: getattr(x, f), d_state, jnp.asarray(d))
+
+    @eqx.filter_jit
+    def jvp(model, state0, d_model, d_state):
+        return jax.jvp(lambda m, s: trajectory_loss(m, s, method, R_obs, q_obs),
+                       (model, state0), (d_model, d_state))[1]
+
+    tangent = float(jvp(model, state0, d_model, d_state))
+    g_model, g_state = grads["lgvi"]
+    dot = sum(float(jnp.sum(a * b)) for a, b in zip(
+        jax.tree.leaves((g_model, g_state)), jax.tree.leaves((d_model, d_state)), strict=True))
+    # Two different linear algebra orderings of the same derivative: round-off only.
+    assert tangent == pytest.approx(dot, rel=1e-10)
+
+
+def test_implicit_gradient_equals_unrolled_newton_gradient(gradient_setup):
+    """The implicit-function-theorem gradient equals the gradient obtained by
+    differentiating through plain Newton iterations (converged to round-off: 6 iterations
+    from the current velocities, where Newton needs 3)."""
+    model, state0, R_obs, q_obs, grads = gradient_setup
+    unrolled = lj.LGVI(newton=lj.Newton(adjoint="unrolled", max_steps=6))
+    g_unrolled = _grad((model, state0), unrolled, R_obs, q_obs)
+    implicit = jax.tree.leaves(grads["lgvi"])
+    diffs = [float(jnp.max(jnp.abs(a - b))) / max(float(jnp.max(jnp.abs(a))), 1e-300)
+             for a, b in zip(implicit, jax.tree.leaves(g_unrolled), strict=True) if jnp.any(a != 0)]
+    # Round-off of 10^3 steps (two different sequences of floating-point operations),
+    # amplified by the sensitivity of the motion over 5 s: measured 2e-12.
+    assert max(diffs) < 1e-10
+    # Not trivially equal: the unrolled solve really is a different computation.
+    assert unrolled.newton.adjoint == "unrolled"
+
+
+def test_unrolled_adjoint_reports_failure_and_keeps_the_default_unchanged():
+    assert lj.Newton().adjoint == "implicit"
+    with pytest.raises(ValueError, match="adjoint"):
+        lj.Newton(adjoint="nope")
+    # y^2 + 1 = 0 has no real root: the unrolled solve says so.
+    sol = lj.newton_solve(lambda y, a: y**2 + a, jnp.array([0.7]), jnp.array(1.0),
+                          lj.Newton(adjoint="unrolled", max_steps=8))
+    assert int(sol.result) == lj.RESULTS.max_steps_reached
+    sol = lj.newton_solve(lambda y, a: y**3 - a, jnp.array([1.0]), jnp.array(2.0),
+                          lj.Newton(adjoint="unrolled", max_steps=10))
+    assert int(sol.result) == lj.RESULTS.successful
+    assert float(sol.value[0]) == pytest.approx(2 ** (1 / 3), rel=1e-14)
+    g = jax.grad(lambda a: lj.newton_solve(lambda y, a: y**3 - a, jnp.array([1.0]), a,
+                                           lj.Newton(adjoint="unrolled",
+                                                     max_steps=10)).value[0])(2.0)
+    assert float(g) == pytest.approx(2 ** (1 / 3) / 6, rel=1e-12)  # d a^(1/3)/da
+
+
+def test_checkpointed_rollout_gives_the_same_values_and_gradient():
+    """checkpoint_every changes what reverse mode stores, not what is computed (the memory
+    it saves is measured in experiments/bench_gradients.py)."""
+    model = lj.HarmonicOscillator(k=1.7)
+    state0 = model.default_state()
+    method = lj.StormerVerlet()
+
+    @eqx.filter_jit
+    def run(model, ck):
+        def loss(model):
+            traj = lj.simulate(model, method, state0, 0.1, 120, save_every=4,
+                               checkpoint_every=ck)
+            return jnp.sum(traj.state.q ** 3), traj
+        return eqx.filter_value_and_grad(loss, has_aux=True)(model)
+
+    (v0, t0), g0 = run(model, None)
+    (v1, t1), g1 = run(model, 24)
+    np.testing.assert_array_equal(t1.state.q, t0.state.q)  # same steps, same values
+    np.testing.assert_array_equal(t1.t, t0.t)
+    assert float(v0) == float(v1)
+    assert float(g1.k) == pytest.approx(float(g0.k), rel=1e-12)  # round-off of reordering
+    with pytest.raises(ValueError, match="checkpoint_every"):
+        lj.simulate(model, method, state0, 0.1, 120, save_every=4, checkpoint_every=6)
+
+
+# ---------------------------------------------------------------------------------------
+# Recovery of the inertia
+# ---------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("noisy, tolerance", [(False, 0.01), (True, 0.05)])
+def test_inertia_recovered_from_the_papers_start(clean_data, noisy_data, noisy, tolerance):
+    obs = identify.check_observations(noisy_data if noisy else clean_data, FIT_DT)
+    result = identify.fit(obs, FIT_DT, names=("J",), method="lgvi",
+                          optimizer="gauss-newton", iterations=300)
+    start_error = rel_error(centroidal_inertia(lj.CarPendulum().J, 1.0, PAPER_RHO_C))
+    assert start_error > 0.15  # the start is far from the truth (20%)
+    assert rel_error(result.J_c) <= tolerance
+    assert result.iterations <= 300
+    assert result.stopped == "converged"
+    # The loss (mean squared error per observed coordinate) reaches the noise floor σ²
+    # (plus the step's own error, ~5e-8 at this step): nothing systematic is left.
+    floor = 1e-6 if noisy else 0.0
+    assert result.loss_history[-1] < 1.2 * floor + 2e-7
+    assert is_physical(result.model.J) and is_physical(result.J_c)
+    # The rest of the model is untouched.
+    assert float(result.model.m) == 1.0
+    np.testing.assert_array_equal(result.model.rho_c, PAPER_RHO_C)
+
+
+def test_fitted_inertia_is_physical_from_any_start(clean_data):
+    """Whatever the start (inertias whose second moments span 3 decades, in random axes),
+    and however far the optimiser throws the iterates (optax Adam with a reckless learning
+    rate), every iterate is a physical inertia: the parametrisation maps every
+    unconstrained vector into the physical set. (RK4 as the integrator: physicality does
+    not depend on it, and its explicit step compiles in a fraction of the time.)"""
+    obs = identify.check_observations(clean_data, FIT_DT)
+    rng = np.random.default_rng(7)
+    for _ in range(3):
+        sigma = np.exp(rng.uniform(-6, 0, 3))
+        Q = np.asarray(so3.exp(jnp.asarray(rng.normal(size=3))))
+        J_c = Q @ (sigma.sum() * np.eye(3) - np.diag(sigma)) @ Q.T
+        start = lj.CarPendulum(J=np.asarray(pivot_inertia(J_c, 1.0, PAPER_RHO_C)))
+        seen = []
+        result = identify.fit(obs, FIT_DT, names=("J",), model=start, method="rk4",
+                              optimizer="adam", lr=3.0, iterations=3, horizons=(1.0,),
+                              callback=lambda i, v, seen=seen: seen.append(v))
+        assert is_physical(result.J_c) and is_physical(result.model.J)
+        assert len(result.loss_history) == result.iterations + 1
+        assert result.iterations == len(seen) - (result.stopped == "non-finite")
+
+
+# ---------------------------------------------------------------------------------------
+# Data checks and the command line
+# ---------------------------------------------------------------------------------------
+
+
+def _write(path, data, **changes):
+    arrays = {**data, **changes}
+    np.savez(path, **{k: v for k, v in arrays.items() if v is not None})
+    return str(path)
+
+
+@pytest.mark.parametrize("change, message", [
+    ({"R": np.zeros((101, 3))}, "R must have shape (101, 3, 3)"),
+    ({"q": np.zeros((100, 2))}, "q must have shape (101, 2)"),
+    ({"omega0": np.array([np.nan, 0, 0])}, "omega0 has 1 non-finite"),
+    ({"t": TIMES + 0.001}, "not a multiple of dt"),
+    ({"t": TIMES[::-1].copy()}, "increasing"),
+    ({"R0": None}, "missing key(s) R0"),
+    ("R_scaled", "R[3] is not in SO(3)"),
+    ("R_reflected", "R[3] is not in SO(3)"),
+])
+def test_fit_refuses_bad_data(clean_data, tmp_path, capsys, change, message):
+    if change == "R_scaled":
+        R = clean_data["R"].copy()
+        R[3] *= 1.01
+        change = {"R": R}
+    elif change == "R_reflected":
+        R = clean_data["R"].copy()
+        R[3] = -R[3]
+        change = {"R": R}
+    data = _write(tmp_path / "obs.npz", clean_data, **change)
+    out = tmp_path / "fit.json"
+    code = main(["fit", "car-pendulum", "--data", data, "--method", "lgvi", "--dt", "0.01",
+                 "--fit", "J", "--out", str(out)])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert "lgvi-jax fit: error: --data" in err and message in err
+    assert len(err.strip().splitlines()) == 1
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--fit", "J,inertia"], "--fit 'inertia'"),
+    (["--fit", "J", "--init", "J=1,0,0,0,1,0,0,0,3"], "--init"),  # unphysical
+    (["--fit", "J", "--init", "R0=1,0,0,0,1,0,0,0,1"], "--init R0"),
+    (["--fit", "J", "--method", "verlet"], "--method 'verlet'"),
+    (["--fit", "J", "--dt", "0.03"], "not a multiple of dt"),
+    (["--fit", "J", "--dt", "-1"], "--dt"),
+])
+def test_fit_refuses_bad_arguments(clean_data, tmp_path, capsys, args, message):
+    data = _write(tmp_path / "obs.npz", clean_data)
+    base = {"--method": "lgvi", "--dt": "0.01"}
+    for i, a in enumerate(args):
+        if a in base:
+            base[a] = args[i + 1]
+    rest = [a for i, a in enumerate(args)
+            if a not in base and (i == 0 or args[i - 1] not in base)]
+    argv = ["fit", "car-pendulum", "--data", data, "--method", base["--method"], "--dt",
+            base["--dt"], *rest, "--out", str(tmp_path / "fit.json")]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert message in err
+
+
+def test_observations_from_simulate_output_derive_the_initial_state(clean_data):
+    # `lgvi-jax simulate car-pendulum` writes t, R, q, omega, v (no R0, omega0, q0, v0).
+    data = {"t": clean_data["t"], "R": clean_data["R"], "q": clean_data["q"],
+            "omega": np.tile(clean_data["omega0"], (101, 1)),
+            "v": np.tile(clean_data["v0"], (101, 1))}
+    obs = identify.check_observations(data, FIT_DT)
+    np.testing.assert_allclose(obs.R0, clean_data["R"][0], atol=1e-15)
+    np.testing.assert_array_equal(obs.omega0, clean_data["omega0"])
+    np.testing.assert_array_equal(obs.q0, clean_data["q"][0])
+
+
+def test_fit_command_writes_the_fit(clean_data, tmp_path, capsys):
+    data = _write(tmp_path / "obs.npz", clean_data)
+    out = tmp_path / "fit.json"
+    code = main(["fit", "car-pendulum", "--data", data, "--method", "lgvi", "--dt", "0.01",
+                 "--fit", "J", "--init", "m=1", "--optimizer", "gauss-newton",
+                 "--iterations", "300", "--out", str(out)])
+    assert code == 0
+    text = capsys.readouterr().out
+    assert "J about the pivot" in text and f"wrote {out}" in text
+    fit = json.loads(out.read_text())
+    J = np.asarray(fit["values"]["J"])
+    assert J.shape == (3, 3) and is_physical(J)
+    assert rel_error(centroidal_inertia(J, 1.0, PAPER_RHO_C)) <= 0.01
+    assert rel_error(fit["values"]["J_c"]) <= 0.01
+    assert fit["iterations"] == len(fit["loss_history"]) - 1 <= 300
+    assert fit["wall_time_s"] > 0 and fit["fitted"] == ["J"] and fit["init"] == {"m": [1.0]}
+    assert fit["loss_final"] < 1e-2 * fit["loss_initial"]
