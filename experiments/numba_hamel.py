@@ -70,7 +70,9 @@ explicit in ``w``, is then as accurate). Typically 4 residuals and one Jacobian 
 ``chord_steps=0`` gives plain Newton (3 iterations, three Jacobians: about half the speed).
 Then ``R_{k+1} = R_kF``, ``q_{k+1} = q_k + hu``, ``p_{k+1} = p_k`` and the ``μ_{k+1}``
 formula. Everything in scalars: no allocation inside the step loop. One compiled loop
-serves all three methods (the method is a run-time code) and both entry points; the batch
+serves all three methods (the method is a run-time code) and both entry points
+(:func:`solver_kernels` builds it for a residual; :mod:`numba_lgvi` reuses it for
+``lgvi``, whose residual has the same form); the batch
 runs one contiguous chunk per thread (``numba.get_num_threads()``) with the GIL released,
 which avoids a second, ``parallel=True`` compilation. Checked against the JAX engine in
 ``tests/test_numba_baseline.py``.
@@ -178,163 +180,177 @@ def _eval(w0, w1, w2, R0, K0, K1, K2, px, py, h, prm, method):
     return res0, res1, res2, u0, u1, n0, n1, n2, c1, c2
 
 
-@njit(cache=False, error_model="numpy")
-def _inverse_jacobian(w0, w1, w2, R0, K0, K1, K2, px, py, h, prm, method, Ji):
-    """``Ji`` (9, row-major) = the inverse of the residual's Jacobian at ``w``: complex
-    step (one complex residual per column, exact to round-off), inverse by cofactors."""
-    eps = 1e-30
-    z0, z1, z2 = complex(w0, 0.0), complex(w1, 0.0), complex(w2, 0.0)
-    c = _eval(complex(w0, eps), z1, z2, R0, K0, K1, K2, px, py, h, prm, method)
-    j00, j10, j20 = c[0].imag / eps, c[1].imag / eps, c[2].imag / eps
-    c = _eval(z0, complex(w1, eps), z2, R0, K0, K1, K2, px, py, h, prm, method)
-    j01, j11, j21 = c[0].imag / eps, c[1].imag / eps, c[2].imag / eps
-    c = _eval(z0, z1, complex(w2, eps), R0, K0, K1, K2, px, py, h, prm, method)
-    j02, j12, j22 = c[0].imag / eps, c[1].imag / eps, c[2].imag / eps
-    k00 = j11 * j22 - j12 * j21
-    k01 = j12 * j20 - j10 * j22
-    k02 = j10 * j21 - j11 * j20
-    idet = 1.0 / (j00 * k00 + j01 * k01 + j02 * k02)
-    Ji[0] = idet * k00
-    Ji[1] = idet * (j02 * j21 - j01 * j22)
-    Ji[2] = idet * (j01 * j12 - j02 * j11)
-    Ji[3] = idet * k01
-    Ji[4] = idet * (j00 * j22 - j02 * j20)
-    Ji[5] = idet * (j02 * j10 - j00 * j12)
-    Ji[6] = idet * k02
-    Ji[7] = idet * (j01 * j20 - j00 * j21)
-    Ji[8] = idet * (j00 * j11 - j01 * j10)
+def solver_kernels(evaluate):
+    """The compiled step and rollout loop for the residual ``evaluate`` (the signature and
+    return values of :func:`_eval`: ``(res (3), u (2), μ_{k+1} without gravity (3), c_1,
+    c_2)`` for ``F = I + c_1ŵ + c_2ŵ²``, float64 or complex128 ``w``): the chord/Newton
+    solve, the explicit update and the batch loop are shared by every method whose
+    residual is three equations in ``w`` (the Hamel methods here, ``lgvi`` in
+    :mod:`numba_lgvi`). Returns ``(inverse_jacobian, step, rollout_range)``; ``evaluate``
+    is a compile-time constant of each, so the calls are direct."""
+
+    @njit(cache=False, error_model="numpy")
+    def inverse_jacobian(w0, w1, w2, R0, K0, K1, K2, px, py, h, prm, method, Ji):
+        """``Ji`` (9, row-major) = the inverse of the residual's Jacobian at ``w``: complex
+        step (one complex residual per column, exact to round-off), inverse by cofactors."""
+        eps = 1e-30
+        z0, z1, z2 = complex(w0, 0.0), complex(w1, 0.0), complex(w2, 0.0)
+        c = evaluate(complex(w0, eps), z1, z2, R0, K0, K1, K2, px, py, h, prm, method)
+        j00, j10, j20 = c[0].imag / eps, c[1].imag / eps, c[2].imag / eps
+        c = evaluate(z0, complex(w1, eps), z2, R0, K0, K1, K2, px, py, h, prm, method)
+        j01, j11, j21 = c[0].imag / eps, c[1].imag / eps, c[2].imag / eps
+        c = evaluate(z0, z1, complex(w2, eps), R0, K0, K1, K2, px, py, h, prm, method)
+        j02, j12, j22 = c[0].imag / eps, c[1].imag / eps, c[2].imag / eps
+        k00 = j11 * j22 - j12 * j21
+        k01 = j12 * j20 - j10 * j22
+        k02 = j10 * j21 - j11 * j20
+        idet = 1.0 / (j00 * k00 + j01 * k01 + j02 * k02)
+        Ji[0] = idet * k00
+        Ji[1] = idet * (j02 * j21 - j01 * j22)
+        Ji[2] = idet * (j01 * j12 - j02 * j11)
+        Ji[3] = idet * k01
+        Ji[4] = idet * (j00 * j22 - j02 * j20)
+        Ji[5] = idet * (j02 * j10 - j00 * j12)
+        Ji[6] = idet * k02
+        Ji[7] = idet * (j01 * j20 - j00 * j21)
+        Ji[8] = idet * (j00 * j11 - j01 * j10)
 
 
-@njit(cache=False, error_model="numpy")
-def _step(R0, mu0, q0, p0, w, h, prm, method, chord_steps, Ji, R1, mu1, q1, p1):
-    """One step in place; ``w`` is the warm start and returns the solution. Returns
-    (iterations, code).
+    @njit(cache=False, error_model="numpy")
+    def step(R0, mu0, q0, p0, w, h, prm, method, chord_steps, Ji, R1, mu1, q1, p1):
+        """One step in place; ``w`` is the warm start and returns the solution. Returns
+        (iterations, code).
 
-    The solver of the JAX engine (``Newton(chord_steps=8)``): the Jacobian at the warm
-    start serves up to ``chord_steps`` iterations; it is recomputed at the current iterate
-    (from then on: Newton) when an update fails to halve the previous one or the chord
-    budget is spent. ``chord_steps = 0``: Newton (a fresh Jacobian every iteration)."""
-    m, g = prm[0], prm[2]
-    r0, r1, r2 = prm[3], prm[4], prm[5]
-    hg = 0.5 * h * m * g
-    # K = μ_0 + (h/2) m g ρ × b_k,  b_k = R0ᵀ e3 (third row of R0)
-    bx, by, bz = R0[2, 0], R0[2, 1], R0[2, 2]
-    K0 = mu0[0] + hg * (r1 * bz - r2 * by)
-    K1 = mu0[1] + hg * (r2 * bx - r0 * bz)
-    K2 = mu0[2] + hg * (r0 * by - r1 * bx)
-    px, py = p0[0], p0[1]
-    w0, w1, w2 = w[0], w[1], w[2]
-    code = 1
-    its = 0
-    since = chord_steps + 1  # iterations with the current Jacobian: none yet
-    prev = np.inf
-    for it in range(20):
-        its = it + 1
-        f0, f1, f2, _, _, _, _, _, _, _ = _eval(w0, w1, w2, R0, K0, K1, K2, px, py, h, prm,
-                                                method)
-        if since >= chord_steps:
-            _inverse_jacobian(w0, w1, w2, R0, K0, K1, K2, px, py, h, prm, method, Ji)
-            since = 0
-        since += 1
-        d0 = -(Ji[0] * f0 + Ji[1] * f1 + Ji[2] * f2)
-        d1 = -(Ji[3] * f0 + Ji[4] * f1 + Ji[5] * f2)
-        d2 = -(Ji[6] * f0 + Ji[7] * f1 + Ji[8] * f2)
-        w0 += d0
-        w1 += d1
-        w2 += d2
-        if not (np.isfinite(d0) and np.isfinite(d1) and np.isfinite(d2)):
-            code = 2
-            break
-        size = max(abs(d0) / (h + abs(w0)), abs(d1) / (h + abs(w1)),
-                   abs(d2) / (h + abs(w2))) * 1e12
-        if size <= 1.0:
-            code = 0
-            break
-        if size > 0.5 * prev:
-            since = chord_steps  # not contracting: a fresh Jacobian next iteration
-        prev = size
-    w[0], w[1], w[2] = w0, w1, w2
-    _, _, _, u0, u1, n0, n1, n2, c1, c2 = _eval(w0, w1, w2, R0, K0, K1, K2, px, py, h, prm,
-                                                method)
-    # R1 = R0 F,  F = I + c1 ŵ + c2 (w wᵀ − θ² I)
-    t2 = w0 * w0 + w1 * w1 + w2 * w2
-    dg = 1.0 - c2 * t2
-    F00, F11, F22 = dg + c2 * w0 * w0, dg + c2 * w1 * w1, dg + c2 * w2 * w2
-    F01, F10 = c2 * w0 * w1 - c1 * w2, c2 * w0 * w1 + c1 * w2
-    F02, F20 = c2 * w0 * w2 + c1 * w1, c2 * w0 * w2 - c1 * w1
-    F12, F21 = c2 * w1 * w2 - c1 * w0, c2 * w1 * w2 + c1 * w0
-    for i in range(3):
-        a, b, cc = R0[i, 0], R0[i, 1], R0[i, 2]
-        R1[i, 0] = a * F00 + b * F10 + cc * F20
-        R1[i, 1] = a * F01 + b * F11 + cc * F21
-        R1[i, 2] = a * F02 + b * F12 + cc * F22
-    q1[0] = q0[0] + h * u0
-    q1[1] = q0[1] + h * u1
-    p1[0] = px
-    p1[1] = py
-    # μ_{k+1} = Aᵀ g_w + (m/2) e × a_{k+1} + (h/2) m g ρ × b_{k+1}
-    bx, by, bz = R1[2, 0], R1[2, 1], R1[2, 2]
-    mu1[0] = n0 + hg * (r1 * bz - r2 * by)
-    mu1[1] = n1 + hg * (r2 * bx - r0 * bz)
-    mu1[2] = n2 + hg * (r0 * by - r1 * bx)
-    for i in range(3):
-        if not np.isfinite(mu1[i]):
-            code = 2
-    return its, code
-
-
-@njit(cache=False, nogil=True, error_model="numpy")
-def _rollout_range(R, mu, q, p, h, n_steps, prm, method, chord_steps, lo, hi, its, codes):
-    """Trajectories ``lo:hi`` of a batch, in place (``R, mu, q, p`` hold the initial
-    states and receive the final ones). Releases the GIL: the batch runs in threads."""
-    R0, mu0, q0, p0 = np.empty((3, 3)), np.empty(3), np.empty(2), np.empty(2)
-    R1, mu1, q1, p1 = np.empty((3, 3)), np.empty(3), np.empty(2), np.empty(2)
-    w = np.empty(3)
-    Ji = np.empty(9)
-    J = prm[6:15]
-    # First guess w = h J⁻¹ μ (cofactors); then each step warm-starts from the previous w.
-    k0 = J[4] * J[8] - J[5] * J[7]
-    k1 = J[5] * J[6] - J[3] * J[8]
-    k2 = J[3] * J[7] - J[4] * J[6]
-    s = h / (J[0] * k0 + J[1] * k1 + J[2] * k2)
-    for b in range(lo, hi):
-        for i in range(3):
-            for j in range(3):
-                R0[i, j] = R[b, i, j]
-            mu0[i] = mu[b, i]
-        for i in range(2):
-            q0[i] = q[b, i]
-            p0[i] = p[b, i]
-        w[0] = s * (k0 * mu0[0] + (J[2] * J[7] - J[1] * J[8]) * mu0[1]
-                    + (J[1] * J[5] - J[2] * J[4]) * mu0[2])
-        w[1] = s * (k1 * mu0[0] + (J[0] * J[8] - J[2] * J[6]) * mu0[1]
-                    + (J[2] * J[3] - J[0] * J[5]) * mu0[2])
-        w[2] = s * (k2 * mu0[0] + (J[1] * J[6] - J[0] * J[7]) * mu0[1]
-                    + (J[0] * J[4] - J[1] * J[3]) * mu0[2])
-        total = 0
-        code = 0
-        for _ in range(n_steps):
-            n_its, c = _step(R0, mu0, q0, p0, w, h, prm, method, chord_steps, Ji, R1, mu1,
-                             q1, p1)
-            total += n_its
-            if c != 0:
-                code = c
-                for i in range(3):
-                    mu0[i] = np.nan
+        The solver of the JAX engine (``Newton(chord_steps=8)``): the Jacobian at the warm
+        start serves up to ``chord_steps`` iterations; it is recomputed at the current iterate
+        (from then on: Newton) when an update fails to halve the previous one or the chord
+        budget is spent. ``chord_steps = 0``: Newton (a fresh Jacobian every iteration)."""
+        m, g = prm[0], prm[2]
+        r0, r1, r2 = prm[3], prm[4], prm[5]
+        hg = 0.5 * h * m * g
+        # K = μ_0 + (h/2) m g ρ × b_k,  b_k = R0ᵀ e3 (third row of R0)
+        bx, by, bz = R0[2, 0], R0[2, 1], R0[2, 2]
+        K0 = mu0[0] + hg * (r1 * bz - r2 * by)
+        K1 = mu0[1] + hg * (r2 * bx - r0 * bz)
+        K2 = mu0[2] + hg * (r0 * by - r1 * bx)
+        px, py = p0[0], p0[1]
+        w0, w1, w2 = w[0], w[1], w[2]
+        code = 1
+        its = 0
+        since = chord_steps + 1  # iterations with the current Jacobian: none yet
+        prev = np.inf
+        for it in range(20):
+            its = it + 1
+            f0, f1, f2, _, _, _, _, _, _, _ = evaluate(w0, w1, w2, R0, K0, K1, K2, px, py,
+                                                       h, prm, method)
+            if since >= chord_steps:
+                inverse_jacobian(w0, w1, w2, R0, K0, K1, K2, px, py, h, prm, method, Ji)
+                since = 0
+            since += 1
+            d0 = -(Ji[0] * f0 + Ji[1] * f1 + Ji[2] * f2)
+            d1 = -(Ji[3] * f0 + Ji[4] * f1 + Ji[5] * f2)
+            d2 = -(Ji[6] * f0 + Ji[7] * f1 + Ji[8] * f2)
+            w0 += d0
+            w1 += d1
+            w2 += d2
+            if not (np.isfinite(d0) and np.isfinite(d1) and np.isfinite(d2)):
+                code = 2
                 break
-            R0, R1 = R1, R0
-            mu0, mu1 = mu1, mu0
-            q0, q1 = q1, q0
-            p0, p1 = p1, p0
+            size = max(abs(d0) / (h + abs(w0)), abs(d1) / (h + abs(w1)),
+                       abs(d2) / (h + abs(w2))) * 1e12
+            if size <= 1.0:
+                code = 0
+                break
+            if size > 0.5 * prev:
+                since = chord_steps  # not contracting: a fresh Jacobian next iteration
+            prev = size
+        w[0], w[1], w[2] = w0, w1, w2
+        _, _, _, u0, u1, n0, n1, n2, c1, c2 = evaluate(w0, w1, w2, R0, K0, K1, K2, px, py,
+                                                       h, prm, method)
+        # R1 = R0 F,  F = I + c1 ŵ + c2 (w wᵀ − θ² I)
+        t2 = w0 * w0 + w1 * w1 + w2 * w2
+        dg = 1.0 - c2 * t2
+        F00, F11, F22 = dg + c2 * w0 * w0, dg + c2 * w1 * w1, dg + c2 * w2 * w2
+        F01, F10 = c2 * w0 * w1 - c1 * w2, c2 * w0 * w1 + c1 * w2
+        F02, F20 = c2 * w0 * w2 + c1 * w1, c2 * w0 * w2 - c1 * w1
+        F12, F21 = c2 * w1 * w2 - c1 * w0, c2 * w1 * w2 + c1 * w0
         for i in range(3):
-            for j in range(3):
-                R[b, i, j] = R0[i, j]
-            mu[b, i] = mu0[i]
-        for i in range(2):
-            q[b, i] = q0[i]
-            p[b, i] = p0[i]
-        its[b] = total
-        codes[b] = code
+            a, b, cc = R0[i, 0], R0[i, 1], R0[i, 2]
+            R1[i, 0] = a * F00 + b * F10 + cc * F20
+            R1[i, 1] = a * F01 + b * F11 + cc * F21
+            R1[i, 2] = a * F02 + b * F12 + cc * F22
+        q1[0] = q0[0] + h * u0
+        q1[1] = q0[1] + h * u1
+        p1[0] = px
+        p1[1] = py
+        # μ_{k+1} = Aᵀ g_w + (m/2) e × a_{k+1} + (h/2) m g ρ × b_{k+1}
+        bx, by, bz = R1[2, 0], R1[2, 1], R1[2, 2]
+        mu1[0] = n0 + hg * (r1 * bz - r2 * by)
+        mu1[1] = n1 + hg * (r2 * bx - r0 * bz)
+        mu1[2] = n2 + hg * (r0 * by - r1 * bx)
+        for i in range(3):
+            if not np.isfinite(mu1[i]):
+                code = 2
+        return its, code
+
+    @njit(cache=False, nogil=True, error_model="numpy")
+    def rollout_range(R, mu, q, p, h, n_steps, prm, method, chord_steps, lo, hi, its,
+                      codes):
+        """Trajectories ``lo:hi`` of a batch, in place (``R, mu, q, p`` hold the initial
+        states and receive the final ones). Releases the GIL: the batch runs in threads."""
+        R0, mu0, q0, p0 = np.empty((3, 3)), np.empty(3), np.empty(2), np.empty(2)
+        R1, mu1, q1, p1 = np.empty((3, 3)), np.empty(3), np.empty(2), np.empty(2)
+        w = np.empty(3)
+        Ji = np.empty(9)
+        J = prm[6:15]
+        # First guess w = h J⁻¹ μ (cofactors); then each step warm-starts from the previous w.
+        k0 = J[4] * J[8] - J[5] * J[7]
+        k1 = J[5] * J[6] - J[3] * J[8]
+        k2 = J[3] * J[7] - J[4] * J[6]
+        s = h / (J[0] * k0 + J[1] * k1 + J[2] * k2)
+        for b in range(lo, hi):
+            for i in range(3):
+                for j in range(3):
+                    R0[i, j] = R[b, i, j]
+                mu0[i] = mu[b, i]
+            for i in range(2):
+                q0[i] = q[b, i]
+                p0[i] = p[b, i]
+            w[0] = s * (k0 * mu0[0] + (J[2] * J[7] - J[1] * J[8]) * mu0[1]
+                        + (J[1] * J[5] - J[2] * J[4]) * mu0[2])
+            w[1] = s * (k1 * mu0[0] + (J[0] * J[8] - J[2] * J[6]) * mu0[1]
+                        + (J[2] * J[3] - J[0] * J[5]) * mu0[2])
+            w[2] = s * (k2 * mu0[0] + (J[1] * J[6] - J[0] * J[7]) * mu0[1]
+                        + (J[0] * J[4] - J[1] * J[3]) * mu0[2])
+            total = 0
+            code = 0
+            for _ in range(n_steps):
+                n_its, c = step(R0, mu0, q0, p0, w, h, prm, method, chord_steps, Ji, R1, mu1,
+                                 q1, p1)
+                total += n_its
+                if c != 0:
+                    code = c
+                    for i in range(3):
+                        mu0[i] = np.nan
+                    break
+                R0, R1 = R1, R0
+                mu0, mu1 = mu1, mu0
+                q0, q1 = q1, q0
+                p0, p1 = p1, p0
+            for i in range(3):
+                for j in range(3):
+                    R[b, i, j] = R0[i, j]
+                mu[b, i] = mu0[i]
+            for i in range(2):
+                q[b, i] = q0[i]
+                p[b, i] = p0[i]
+            its[b] = total
+            codes[b] = code
+
+    return inverse_jacobian, step, rollout_range
+
+
+_inverse_jacobian, _step, _rollout_range = solver_kernels(_eval)
 
 
 #: chord iterations per Jacobian, as the JAX engine's default ``Newton(chord_steps=8)``
@@ -349,27 +365,22 @@ def _prepare(R, mu, q, p, batch):
     return arrays, np.zeros(n, np.int64), np.zeros(n, np.int64)
 
 
-def rollout(method, R, mu, q, p, h, n_steps, params, chord_steps=CHORD_STEPS):
-    """One trajectory: ``(R, mu, q, p, newton_iterations_total, result_code)``."""
-    (R, mu, q, p), its, codes = _prepare(R, mu, q, p, False)
-    _rollout_range(R, mu, q, p, float(h), int(n_steps), np.asarray(params, np.float64),
-                   CODES[method], int(chord_steps), 0, 1, its, codes)
-    return R[0], mu[0], q[0], p[0], int(its[0]), int(codes[0])
-
-
-def rollout_batch(method, R, mu, q, p, h, n_steps, params, chord_steps=CHORD_STEPS):
-    """A batch (leading axis) in parallel over ``numba.get_num_threads()`` threads (the
-    compiled loop releases the GIL; one contiguous chunk per thread). Returns
-    ``(R, mu, q, p, iterations (B,), codes (B,))``."""
-    (R, mu, q, p), its, codes = _prepare(R, mu, q, p, True)
+def run_kernel(rollout_range, method, R, mu, q, p, h, n_steps, params, chord_steps,
+               batch):
+    """Run a ``rollout_range`` of :func:`solver_kernels` with the integer ``method``: one
+    trajectory (``batch=False``) or a batch (leading axis) in parallel over
+    ``numba.get_num_threads()`` threads (the compiled loop releases the GIL; one contiguous
+    chunk per thread). Returns ``(R, mu, q, p, iterations, codes)``, the last two of shape
+    ``(B,)`` (``(1,)`` for one trajectory, with a leading axis on the states)."""
+    (R, mu, q, p), its, codes = _prepare(R, mu, q, p, batch)
     B = R.shape[0]
     n_threads = max(1, min(numba.get_num_threads(), B))
     bounds = [B * i // n_threads for i in range(n_threads + 1)]
-    args = (float(h), int(n_steps), np.asarray(params, np.float64), CODES[method],
+    args = (float(h), int(n_steps), np.asarray(params, np.float64), int(method),
             int(chord_steps))
 
     def run(i):
-        _rollout_range(R, mu, q, p, *args, bounds[i], bounds[i + 1], its, codes)
+        rollout_range(R, mu, q, p, *args, bounds[i], bounds[i + 1], its, codes)
 
     if n_threads == 1:
         run(0)
@@ -379,4 +390,20 @@ def rollout_batch(method, R, mu, q, p, h, n_steps, params, chord_steps=CHORD_STE
     return R, mu, q, p, its, codes
 
 
-__all__ = ["CHORD_STEPS", "CODES", "METHODS", "rollout", "rollout_batch"]
+def rollout(method, R, mu, q, p, h, n_steps, params, chord_steps=CHORD_STEPS):
+    """One trajectory: ``(R, mu, q, p, newton_iterations_total, result_code)``."""
+    R, mu, q, p, its, codes = run_kernel(_rollout_range, CODES[method], R, mu, q, p, h,
+                                         n_steps, params, chord_steps, False)
+    return R[0], mu[0], q[0], p[0], int(its[0]), int(codes[0])
+
+
+def rollout_batch(method, R, mu, q, p, h, n_steps, params, chord_steps=CHORD_STEPS):
+    """A batch (leading axis) in parallel over ``numba.get_num_threads()`` threads (the
+    compiled loop releases the GIL; one contiguous chunk per thread). Returns
+    ``(R, mu, q, p, iterations (B,), codes (B,))``."""
+    return run_kernel(_rollout_range, CODES[method], R, mu, q, p, h, n_steps, params,
+                      chord_steps, True)
+
+
+__all__ = ["CHORD_STEPS", "CODES", "METHODS", "rollout", "rollout_batch", "run_kernel",
+           "solver_kernels"]

@@ -15,9 +15,9 @@ def test_numba_lgvi_matches_the_engine(moving):
     model = lj.CarPendulum() if not moving else lj.CarPendulum(
         v0=(1.5, -0.7), omega0=(1.0, -0.5, 3.0), R0=R0)
     s0 = model.default_state()
+    params = nb.params_from_model(model)
     R, mu, q, p = (np.asarray(x) for x in (s0.R, s0.mu, s0.q, s0.p))
-    R1, mu1, q1, p1, its, code = nb.rollout("lgvi", R, mu, q, p, 5e-3, 200,
-                                            nb.params_from_model(model))
+    R1, mu1, q1, p1, its, code = nb.rollout("lgvi", R, mu, q, p, 5e-3, 200, params)
     traj = lj.simulate(model, lj.LGVI(), s0, 5e-3, 200)
     assert code == 0 and traj.ok
     # Both solve to |Δξ| <= 1e-12 (1 + |ξ|) per step, from different initial guesses, so
@@ -25,9 +25,27 @@ def test_numba_lgvi_matches_the_engine(moving):
     for ours, theirs in zip((traj.state.R, traj.state.mu, traj.state.q, traj.state.p),
                             (R1, mu1, q1, p1), strict=True):
         np.testing.assert_allclose(theirs, np.asarray(ours)[-1], atol=1e-11)
-    assert 2.0 <= its / 200 <= 4.0
-    # Failure is reported, not hidden: a step far too large for Newton.
-    *_, code = nb.rollout("lgvi", R, mu * 1e4, q, p, 5e-3, 5, nb.params_from_model(model))
+    # The engine's solver: chord iterations (one Jacobian per step), ~4 per step.
+    assert 2.0 <= its / 200 <= 5.0
+    # The batch runs the same compiled loop: the same iterates, bit for bit.
+    batch = [np.stack([x, x]) for x in (R, mu, q, p)]
+    *theirs, its_b, codes = nb.rollout_batch("lgvi", *batch, 5e-3, 200, params)
+    assert np.all(codes == 0) and np.all(its_b == its)
+    for a, b in zip((R1, mu1, q1, p1), theirs, strict=True):
+        np.testing.assert_array_equal(b, np.stack([a, a]))
+    # A large step (θ = h|ξ| ≈ 0.2; the engine's compiled rollout is reused: dt is not
+    # static): agreement to the accumulated solver tolerance.
+    traj = lj.simulate(model, lj.LGVI(), s0, 0.04, 200)
+    *theirs, its, code = nb.rollout("lgvi", R, mu, q, p, 0.04, 200, params)
+    assert traj.ok and code == 0
+    for a, b in zip((traj.state.R, traj.state.mu, traj.state.q, traj.state.p), theirs,
+                    strict=True):
+        np.testing.assert_allclose(b, np.asarray(a)[-1], rtol=0, atol=2e-10)
+    # Failure is reported, not hidden: a non-finite state, and a step far too large for
+    # Newton.
+    *_, code = nb.rollout("lgvi", R, mu * np.nan, q, p, 5e-3, 5, params)
+    assert code == 2
+    *_, code = nb.rollout("lgvi", R, mu * 1e4, q, p, 5e-3, 5, params)
     assert code != 0
 
 
