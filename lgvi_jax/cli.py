@@ -195,6 +195,12 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 def cmd_reproduce(args: argparse.Namespace) -> int:
     from .reproduce import reproduce
 
+    if args.full:
+        import importlib.util
+
+        if importlib.util.find_spec("scipy") is None:
+            raise UsageError("--full needs SciPy (the reference solutions and peer solvers): "
+                             "pip install 'lgvi_jax[bench]'")
     out = Path(args.out)
     try:
         out.mkdir(parents=True, exist_ok=True)

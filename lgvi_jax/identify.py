@@ -406,9 +406,12 @@ class FitResult:
         return out
 
     def to_json(self) -> dict[str, Any]:
+        values = self.values()
         return {
+            # The fitted quantities at the top level too (J as a 3x3 list, about the pivot).
+            **{name: values[name] for name in self.names},
             "fitted": list(self.names),
-            "values": self.values(),
+            "values": values,
             "loss_initial": self.loss_initial,
             "loss_final": self.loss_final,
             "loss_history": self.loss_history,
