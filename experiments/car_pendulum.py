@@ -27,8 +27,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import sys
 import time
 from collections.abc import Callable
@@ -39,9 +37,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-import lgvi_jax
 from lgvi_jax import so3
-from lgvi_jax.diagnostics import drift_ratio, observed_order
+from lgvi_jax.diagnostics import drift_ratio, environment, observed_order
 from lgvi_jax.integrators import RIGID_METHODS, resolve_method
 from lgvi_jax.models import CarPendulum
 from lgvi_jax.plotting import figure, positive, save, style_for
@@ -536,13 +533,7 @@ def run(out_dir: Path | str, *, quick: bool = False, log: Callable = print) -> d
         "sweep": sweep_res,
         "long_run": long,
         "verdicts": verdicts(table, sweep_res, long),
-        "environment": {
-            "lgvi_jax": lgvi_jax.__version__,
-            "jax": jax.__version__,
-            "python": platform.python_version(),
-            "machine": platform.machine(),
-            "cpu_count": os.cpu_count(),
-        },
+        "environment": environment(),
     }
     write_summary(results, out)
     # results.json last: its presence marks the stage as complete (see lgvi_jax.reproduce).

@@ -29,18 +29,15 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
 
-import jax
 import numpy as np
 
-import lgvi_jax
 from lgvi_jax import identify
+from lgvi_jax.diagnostics import environment
 from lgvi_jax.inertia import centroidal_inertia, is_physical, pivot_inertia
 from lgvi_jax.models import CarPendulum
 from lgvi_jax.models.rigid_bodies import PAPER_J, PAPER_RHO_C
@@ -142,13 +139,7 @@ def run(out_dir: Path | str, *, quick: bool = False, log: Callable = print) -> d
             "all_physical": all(f["physical"] for f in fits.values())
             and all(r["physical"] for rows in sweep.values() for r in rows),
         },
-        "environment": {
-            "lgvi_jax": lgvi_jax.__version__,
-            "jax": jax.__version__,
-            "python": platform.python_version(),
-            "machine": platform.machine(),
-            "cpu_count": os.cpu_count(),
-        },
+        "environment": environment(),
     }
     figures(results, out)
     write_summary(results, out)

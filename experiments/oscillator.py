@@ -15,19 +15,16 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import sys
 from collections.abc import Callable
 from pathlib import Path
 
-import jax
 import numpy as np
 from matplotlib.ticker import NullFormatter
 
-import lgvi_jax
 from lgvi_jax.diagnostics import (
     drift_ratio,
+    environment,
     observed_order,
     relative_energy_error,
     rk4_energy_factor,
@@ -322,14 +319,7 @@ def run(out_dir: Path | str, *, quick: bool = False, log: Callable = print) -> d
         "convergence": conv,
         "long_run": long,
         "crossover": cross,
-        "environment": {
-            "lgvi_jax": lgvi_jax.__version__,
-            "jax": jax.__version__,
-            "python": platform.python_version(),
-            "machine": platform.machine(),
-            "cpu_count": os.cpu_count(),
-            "devices": [str(d) for d in jax.devices()],
-        },
+        "environment": environment(),
     }
     write_summary(results, out)
     # results.json last: its presence marks the stage as complete (see lgvi_jax.reproduce).

@@ -45,10 +45,7 @@ Run:  ``python experiments/stability.py --out DIR [--quick]`` or
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
-import os
-import platform
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -59,11 +56,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-import lgvi_jax
+from lgvi_jax.diagnostics import environment
 from lgvi_jax.models import CarPendulum, HarmonicOscillator, PhaseState
 from lgvi_jax.newton import RESULTS
-from lgvi_jax.plotting import figure, positive, save, style_for
-from lgvi_jax.scenes import get_scene
+from lgvi_jax.plotting import figure, method_style, positive, save
+from lgvi_jax.scenes import resolve_methods
 from lgvi_jax.simulate import _guarded_step
 
 #: Methods probed, by scene name; names that do not resolve (not in this checkout) are
@@ -90,27 +87,6 @@ THEORY = {"rk4": 2.0 * np.sqrt(2.0), "verlet": 2.0, "gl4": None, "gl6": None}
 #: The spectral radius counts as > 1 above this (round-off of the 2x2 product).
 PROPAGATOR_TOL = 1e-9
 
-#: One colour per method in these charts (the shared METHOD_STYLE gives lgvi and gl4 the same
-#: colour); compositions ``base@k`` are dotted, coloured by their order.
-COLOURS = {"lgvi": "tab:blue", "hamel": "tab:orange", "hamel-cayley": "tab:green",
-           "hamel-exact": "tab:purple", "hamel-cayley-exact": "tab:brown", "rk4": "tab:red",
-           "gl4": "tab:cyan", "gl6": "navy", "rkmk4": "tab:gray", "verlet": "tab:purple",
-           "galerkin4": "tab:green", "galerkin6": "tab:olive"}
-COMPOSED_COLOURS = {"4": "tab:pink", "6": "darkgoldenrod", "8": "teal"}
-
-
-def method_style(name: str) -> dict:
-    """Colour and line style of one of our methods in these charts."""
-    base, _, order = name.partition("@")
-    style = style_for(base)
-    style.pop("linewidth", None)
-    if order:
-        style.update(color=COMPOSED_COLOURS.get(order, "tab:gray"), linestyle=":")
-    elif base in COLOURS:
-        style["color"] = COLOURS[base]
-    return style
-
-
 def config(quick: bool) -> dict:
     return {
         "quick": quick,
@@ -125,18 +101,6 @@ def config(quick: bool) -> dict:
         "euclidean_methods": list(QUICK_EUCLIDEAN if quick else EUCLIDEAN_METHOD_NAMES),
         "max_bisections": 40,
     }
-
-
-def resolve_methods(system: str, names: Sequence[str]) -> tuple[dict, list[str]]:
-    """``({name: integrator}, skipped)`` via ``get_scene(system).method(name)``."""
-    scene = get_scene(system)
-    methods, skipped = {}, []
-    for name in names:
-        try:
-            methods[name] = scene.method(name)
-        except ValueError:
-            skipped.append(name)
-    return methods, skipped
 
 
 # ------------------------------------------------------------------------- the probe
@@ -519,13 +483,7 @@ def run(out_dir: Path | str, *, quick: bool = False, log: Callable = print) -> d
     results = {
         "quick": quick, "config": cfg, "oscillator": osc, "car_pendulum": car,
         "wall_time_s": time.perf_counter() - start,
-        "environment": {
-            "lgvi_jax": lgvi_jax.__version__, "jax": jax.__version__,
-            "python": platform.python_version(), "machine": platform.machine(),
-            "cpu_count": os.cpu_count(), "devices": [str(d) for d in jax.devices()],
-            "date": datetime.datetime.now(datetime.timezone.utc).isoformat(
-                timespec="seconds"),
-        },
+        "environment": environment(),
     }
     write_summary(results, out)
     # results.json last: its presence marks the stage as complete (see lgvi_jax.reproduce).

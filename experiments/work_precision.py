@@ -55,11 +55,8 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import datetime
 import functools
 import json
-import os
-import platform
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -72,11 +69,11 @@ import jax.numpy as jnp
 import numpy as np
 
 import lgvi_jax
-from lgvi_jax import so3
+from lgvi_jax import diagnostics, so3
 from lgvi_jax.models import CarPendulum, HarmonicOscillator, PhaseState
-from lgvi_jax.plotting import figure, positive, save, style_for
+from lgvi_jax.plotting import figure, method_style, positive, save
 from lgvi_jax.reference import HandReference, moving_scene
-from lgvi_jax.scenes import get_scene
+from lgvi_jax.scenes import get_scene, resolve_methods
 from lgvi_jax.simulate import _guarded_step
 
 try:  # optional peer (the ``bench`` extra)
@@ -125,27 +122,6 @@ REPEATS = 3
 CHECK_TIMES = (10.0, 50.0)
 DIFFRAX_MAX_STEPS = 10**7
 
-#: One colour per method in these charts (the shared METHOD_STYLE gives lgvi and gl4 the same
-#: colour); compositions ``base@k`` are dotted, coloured by their order.
-COLOURS = {"lgvi": "tab:blue", "hamel": "tab:orange", "hamel-cayley": "tab:green",
-           "hamel-exact": "tab:purple", "hamel-cayley-exact": "tab:brown", "rk4": "tab:red",
-           "gl4": "tab:cyan", "gl6": "navy", "rkmk4": "tab:gray", "verlet": "tab:purple",
-           "galerkin4": "tab:green", "galerkin6": "tab:olive"}
-COMPOSED_COLOURS = {"4": "tab:pink", "6": "darkgoldenrod", "8": "teal"}
-
-
-def method_style(name: str) -> dict:
-    """Colour and line style of one of our methods in these charts."""
-    base, _, order = name.partition("@")
-    style = style_for(base)
-    style.pop("linewidth", None)
-    if order:
-        style.update(color=COMPOSED_COLOURS.get(order, "tab:gray"), linestyle=":")
-    elif base in COLOURS:
-        style["color"] = COLOURS[base]
-    return style
-
-
 def config(quick: bool) -> dict:
     return {
         "quick": quick,
@@ -183,20 +159,6 @@ def config(quick: bool) -> dict:
         "reference_check_rtol": None if quick else 1e-12,
         "repeats": REPEATS,
     }
-
-
-def resolve_methods(system: str, names: Sequence[str]) -> tuple[dict[str, Any], list[str]]:
-    """``({name: integrator}, skipped)``: each name resolved by
-    ``get_scene(system).method(name)``; names that raise ``ValueError`` (not implemented in
-    this checkout, or not applicable) are skipped and listed."""
-    scene = get_scene(system)
-    methods, skipped = {}, []
-    for name in names:
-        try:
-            methods[name] = scene.method(name)
-        except ValueError:
-            skipped.append(name)
-    return methods, skipped
 
 
 def _order_key(order: int) -> str:
@@ -1024,17 +986,9 @@ def _strip(runs: list[dict], keep_series: bool = False) -> list[dict]:
 
 
 def environment() -> dict:
-    return {
-        "lgvi_jax": lgvi_jax.__version__,
-        "jax": jax.__version__,
-        "diffrax": getattr(diffrax, "__version__", None) if diffrax is not None else None,
-        "scipy": __import__("scipy").__version__,
-        "python": platform.python_version(),
-        "machine": platform.machine(),
-        "cpu_count": os.cpu_count(),
-        "devices": [str(d) for d in jax.devices()],
-        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-    }
+    return diagnostics.environment(
+        diffrax=getattr(diffrax, "__version__", None) if diffrax is not None else None,
+        scipy=__import__("scipy").__version__)
 
 
 def run(out_dir: Path | str, *, quick: bool = False, log: Callable = print) -> dict:

@@ -260,6 +260,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
         t_final=args.t_final, n=args.n, perturb=args.perturb, seed=args.seed,
         chunk=args.chunk, sample_every=args.sample_every,
         parameters={k: v.tolist() for k, v in overrides.items()},
+        chord=args.chord,
     )
     try:
         config.validate(list(scene.methods))
@@ -276,7 +277,12 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     log(f"{scene.name}: {config.n} initial conditions x {len(config.methods)} method(s) x "
         f"{len(config.dts)} step(s) on {len(devices)} {devices[0].platform} device(s)")
     try:
-        summary = run_sweep(config, model, state0, scene.method, Path(args.out),
+        from .integrators import with_chord_matrix
+
+        def make_method(name):
+            return with_chord_matrix(scene.method(name), config.chord)
+
+        summary = run_sweep(config, model, state0, make_method, Path(args.out),
                             resume=args.resume, progress=not quiet, log=log)
     except SweepError as err:
         raise UsageError(str(err)) from None
@@ -480,8 +486,8 @@ def build_parser() -> argparse.ArgumentParser:
     rep.add_argument("--force", action="store_true",
                      help="recompute stages whose results already exist in the folder")
     rep.add_argument("--full", action="store_true",
-                     help="also the work-precision and stability studies (about 15 min on 2 "
-                     "cores; diffrax from the `bench` extra for the peer solvers)")
+                     help="also the work-precision, stability and inertia-identification "
+                     "studies (about 8 min on 2 cores; needs the `bench` extra: SciPy, diffrax)")
     rep.set_defaults(func=cmd_reproduce)
 
     sw = sub.add_parser(
@@ -512,6 +518,10 @@ def build_parser() -> argparse.ArgumentParser:
                     "per core); the batch is sharded over all devices")
     sw.add_argument("--set", action="append", metavar="NAME=V1[,V2...]",
                     help="override a parameter or the central initial value (repeatable)")
+    sw.add_argument("--chord", choices=("exact", "mass"), default="exact",
+                    help="chord matrix of the Lie-group VIs' Newton solves: the Jacobian "
+                    "(default) or the continuous Legendre matrix (same solutions, faster "
+                    "batched)")
     sw.add_argument("--json", action="store_true",
                     help="print the summary as one JSON object (no progress bar)")
     sw.set_defaults(func=cmd_sweep)

@@ -101,3 +101,26 @@ def summarize(traj: Any) -> dict[str, Any]:
         out["failed_step"] = int(np.asarray(traj.failed_step))
         out["failed_residual"] = float(np.asarray(traj.failed_residual))
     return out
+
+
+def environment(**extra) -> dict:
+    """Where a result was measured: package versions, the machine, the JAX devices and the
+    date (UTC), plus ``extra`` entries; every experiment stores it in its ``results.json``."""
+    import datetime
+    import os
+    import platform
+
+    import jax
+
+    from . import __version__
+
+    return {
+        "lgvi_jax": __version__,
+        "jax": jax.__version__,
+        "python": platform.python_version(),
+        "machine": platform.machine(),
+        "cpu_count": os.cpu_count(),
+        "devices": [str(d) for d in jax.devices()],
+        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        **extra,
+    }

@@ -11,7 +11,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-__all__ = ["METHOD_STYLE", "figure", "save", "style_for"]
+__all__ = ["METHOD_STYLE", "figure", "method_style", "save", "style_for"]
 
 #: One colour and line style per method name, shared by every figure.
 METHOD_STYLE: dict[str, dict[str, Any]] = {
@@ -55,3 +55,24 @@ def save(fig, path: Path | str) -> Path:
 def positive(values: Any, floor: float = 1e-17) -> np.ndarray:
     """``|values|`` clipped below at ``floor``, for log-scale axes (exact zeros would vanish)."""
     return np.maximum(np.abs(np.asarray(values, dtype=np.float64)), floor)
+
+
+#: One colour per method in these charts (the shared METHOD_STYLE gives lgvi and gl4 the same
+#: colour); compositions ``base@k`` are dotted, coloured by their order.
+COLOURS = {"lgvi": "tab:blue", "hamel": "tab:orange", "hamel-cayley": "tab:green",
+           "hamel-exact": "tab:purple", "hamel-cayley-exact": "tab:brown", "rk4": "tab:red",
+           "gl4": "tab:cyan", "gl6": "navy", "rkmk4": "tab:gray", "verlet": "tab:purple",
+           "galerkin4": "tab:green", "galerkin6": "tab:olive"}
+COMPOSED_COLOURS = {"4": "tab:pink", "6": "darkgoldenrod", "8": "teal"}
+
+
+def method_style(name: str) -> dict:
+    """Colour and line style of one of our methods in these charts."""
+    base, _, order = name.partition("@")
+    style = style_for(base)
+    style.pop("linewidth", None)
+    if order:
+        style.update(color=COMPOSED_COLOURS.get(order, "tab:gray"), linestyle=":")
+    elif base in COLOURS:
+        style["color"] = COLOURS[base]
+    return style

@@ -8,7 +8,7 @@ strings: the CLI turns ``--set NAME=V1,V2`` into float arrays and hands them to
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import jax
@@ -19,7 +19,7 @@ from .integrators import EUCLIDEAN_METHODS, RIGID_METHODS, AbstractIntegrator, M
 from .models import CarPendulum, FreeRigidBody, HarmonicOscillator, HeavyTop
 from .models.rigid_bodies import PAPER_J, PAPER_OMEGA0, PAPER_R0, PAPER_RHO_C
 
-__all__ = ["SCENES", "Parameter", "Scene", "get_scene"]
+__all__ = ["SCENES", "Parameter", "Scene", "get_scene", "resolve_methods"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -223,3 +223,18 @@ def get_scene(name: str) -> Scene:
     if name not in SCENES:
         raise ValueError(f"unknown system {name!r}; valid systems: {', '.join(SCENES)}")
     return SCENES[name]
+
+
+def resolve_methods(system: str, names: Sequence[str]
+                    ) -> tuple[dict[str, AbstractIntegrator], list[str]]:
+    """``({name: integrator}, skipped)``: each name resolved by
+    ``get_scene(system).method(name)``; names that raise ``ValueError`` (not implemented in
+    this checkout, or not applicable) are skipped and listed."""
+    scene = get_scene(system)
+    methods, skipped = {}, []
+    for name in names:
+        try:
+            methods[name] = scene.method(name)
+        except ValueError:
+            skipped.append(name)
+    return methods, skipped

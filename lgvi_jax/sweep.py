@@ -115,11 +115,16 @@ class SweepConfig:
     chunk: int = 256
     sample_every: int = 1
     parameters: dict[str, list[float]] = dataclasses.field(default_factory=dict)
+    #: The Lie-group VIs' chord matrix (``"exact"`` or ``"mass"``): the same solutions to
+    #: round-off, ``"mass"`` is faster batched (``lgvi-jax bench``).
+    chord: str = "exact"
 
     def to_json(self) -> dict[str, Any]:
         d = dataclasses.asdict(self)
         d["methods"] = list(self.methods)
         d["dts"] = list(self.dts)
+        if d["chord"] == "exact":  # the default: manifests of earlier sweeps stay resumable
+            del d["chord"]
         return d
 
     def n_steps(self, dt: float) -> int:
@@ -149,6 +154,8 @@ class SweepConfig:
         """Raise :class:`SweepError` naming the first bad argument."""
         if not self.methods:
             raise SweepError("--method: give at least one method (e.g. lgvi,hamel)")
+        if self.chord not in ("exact", "mass"):
+            raise SweepError(f"--chord must be 'exact' or 'mass', got {self.chord!r}")
         if len(set(self.methods)) != len(self.methods):
             raise SweepError(f"--method: a method is listed twice: {','.join(self.methods)}")
         if valid_methods is not None:

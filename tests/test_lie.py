@@ -12,7 +12,7 @@ from scipy.optimize import fsolve
 import lgvi_jax as L
 from lgvi_jax import so3
 from lgvi_jax.diagnostics import drift_ratio
-from lgvi_jax.integrators import LGVI, RIGID_METHODS, HamelVI
+from lgvi_jax.integrators import LGVI, RIGID_METHODS, HamelVI, resolve_method
 from lgvi_jax.models import CarPendulum, FreeRigidBody, HeavyTop, RigidState
 from lgvi_jax.newton import RESULTS, Newton
 from lgvi_jax.simulate import IntegrationError, simulate
@@ -324,11 +324,14 @@ def test_vmap_over_initial_states_equals_loop():
             np.testing.assert_allclose(b[i], a, rtol=0, atol=1e-13)
 
 
-@pytest.mark.parametrize("name", ["lgvi"])
+@pytest.mark.parametrize("name", ["lgvi", "hamel", "hamel-cayley", "hamel-cayley-exact",
+                                  "lgvi@4"])
 def test_gradient_through_rollout_matches_finite_differences(name):
     """d(final pendulum position)/d(scale of J, m, ω0_z) through 100 implicit steps, by
-    reverse mode (implicit function theorem at every Newton solve) vs central differences."""
-    method = RIGID_METHODS[name]()
+    reverse mode (implicit function theorem at every Newton solve) vs central differences:
+    every VI method (hamel-exact: tests/test_identify.py, through 10^3 steps) and a
+    composition."""
+    method = resolve_method(name, RIGID_METHODS)
     base = CarPendulum()
 
     def final_centre(params):

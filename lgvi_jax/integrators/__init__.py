@@ -12,6 +12,7 @@ from .composition import (
     compose,
     parse_method,
     resolve_method,
+    with_chord_matrix,
 )
 from .galerkin import GalerkinVI
 from .gauss_legendre import GaussLegendre
@@ -67,4 +68,5 @@ __all__ = [
     "compose",
     "parse_method",
     "resolve_method",
+    "with_chord_matrix",
 ]

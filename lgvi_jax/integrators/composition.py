@@ -578,3 +578,21 @@ class MethodTable(Mapping):
         """The base methods that can be composed (symmetric, order below 8)."""
         return [n for n, make in self._methods.items()
                 if make().symmetric and make().order < max(DEFAULT_SCHEMES)]
+
+
+def with_chord_matrix(method: AbstractIntegrator, chord_matrix: str) -> AbstractIntegrator:
+    """``method`` with its Lie-group VI steps using ``chord_matrix`` (``"exact"`` or
+    ``"mass"``, see :class:`~lgvi_jax.integrators.lie.AbstractLieVI`), also inside a
+    composition; any other method is returned unchanged (it has no chord phase)."""
+    import dataclasses
+
+    from .lie import AbstractLieVI
+
+    if chord_matrix not in ("exact", "mass"):
+        raise ValueError(f"chord_matrix must be 'exact' or 'mass', got {chord_matrix!r}")
+    if isinstance(method, AbstractLieVI):
+        return dataclasses.replace(method, chord_matrix=chord_matrix)
+    if isinstance(method, Composition) and isinstance(method.base, AbstractLieVI):
+        return dataclasses.replace(
+            method, base=dataclasses.replace(method.base, chord_matrix=chord_matrix))
+    return method
