@@ -79,8 +79,10 @@ def test_batch_equals_loop_of_single_runs(car, name):
     single_device = run_batch(model, method, states, DT, N_STEPS, devices=jax.devices()[:1])
     for key in sharded:
         # Round-off: 2 trajectories per device vs 4 on one device run through different
-        # vector code paths; the drifts are themselves round-off (~1e-14).
-        np.testing.assert_allclose(sharded[key], single_device[key], rtol=1e-9, atol=1e-13,
+        # vector code paths, so the states differ by round-off accumulated over the run
+        # (energy errors differ by up to 1.4e-13 measured); the drifts are themselves
+        # round-off (~1e-14).
+        np.testing.assert_allclose(sharded[key], single_device[key], rtol=1e-9, atol=1e-12,
                                    err_msg=key)
     for i in range(4):
         traj = lj.simulate(model, method, _take(states, i), DT, N_STEPS)

@@ -66,7 +66,7 @@ import jax.numpy as jnp
 
 from .. import so3
 from ..models.rigid import AbstractRigidBodyModel, RigidState
-from ..newton import Newton, newton_solve, small_solve
+from ..newton import ChordInverse, Newton, newton_solve, spd_inverse
 from .base import AbstractIntegrator, StepInfo
 
 __all__ = ["LGVI", "AbstractLieVI", "HamelVI"]
@@ -83,11 +83,11 @@ class AbstractLieVI(AbstractIntegrator):
     #: The chord matrix. ``"exact"`` (default): the Jacobian at the initial guess
     #: (forward-over-reverse, ~7 residuals' cost; 4 iterations per step at h = 5e-3 on the
     #: car-pendulum). ``"mass"``: the continuous Legendre map's matrix ∂(μ, p)/∂(ω, v) at
-    #: the current configuration, which costs no derivative of G: the discrete Legendre
-    #: map's Jacobian in the velocity unknowns is this matrix + O(h), so the chord contracts
-    #: by ~0.012 per iteration at h = 5e-3 (0.12 at h = 0.05) and takes ~8 cheap iterations
-    #: (up to ``max(newton.chord_steps, 20)`` before the Newton fallback). The same
-    #: solutions to round-off; about 1.5x the batched throughput (``lgvi-jax bench``).
+    #: the current configuration, which costs no derivative of G (the discrete Legendre
+    #: map's Jacobian in the velocity unknowns is this matrix + O(h)), improved after every
+    #: iteration by Broyden's update (``Newton.broyden``): ~6 cheap iterations at
+    #: h = 5e-3 (up to ``max(newton.chord_steps, 20)`` before the Newton fallback). The same
+    #: solutions to round-off; about 1.6x the batched throughput (``lgvi-jax bench``).
     chord_matrix: str = eqx.field(static=True, default="exact")
 
     def __check_init__(self):
@@ -182,13 +182,17 @@ class AbstractLieVI(AbstractIntegrator):
         R0, mu0, q0, p0 = state.R, state.mu, state.q, state.p
         h = jnp.asarray(dt, R0.dtype)
         mass, at_rest = model.mass_matrix(R0, q0)
+        # The kinetic-energy Hessian is symmetric positive definite: one pivot-free inverse
+        # serves the initial guess and the mass chord (spd_inverse).
+        mass_inv = spd_inverse(mass)
         if guess is None:
-            x = small_solve(mass, jnp.concatenate([mu0, p0]) - at_rest)
+            x = mass_inv @ (jnp.concatenate([mu0, p0]) - at_rest)
             guess = (x[:3], x[3:])
         if self.chord_matrix == "mass":
-            jac0 = mass
+            jac0 = ChordInverse(mass_inv)
             solver = dataclasses.replace(self.newton,
-                                         chord_steps=max(self.newton.chord_steps, 20))
+                                         chord_steps=max(self.newton.chord_steps, 20),
+                                         broyden=True)
         else:
             jac0, solver = None, self.newton
         sol = newton_solve(self._residual, guess, (model, R0, mu0, q0, p0, h), solver,
