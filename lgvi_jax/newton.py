@@ -398,11 +398,6 @@ def _iterate(f, y0, solver: Newton, jac0=None):
     return y, result, k, res
 
 
-def _mv(A, x):
-    # A matrix-vector product as a fusible multiply-and-sum (a tiny dot is a library call).
-    return A @ x
-
-
 def _broyden(f, y0, jac0, limit: int, solver: Newton):
     r"""The chord phase with Broyden's update of the inverse matrix (``Newton.broyden``).
 
@@ -414,9 +409,10 @@ def _broyden(f, y0, jac0, limit: int, solver: Newton):
 
     which makes ``H d = s``, and takes the step ``s = −H F(y)``. Convergence is
     superlinear from a good initial matrix (Dennis & Moré, SIAM Review 19, 1977; Kelley,
-    2003, ch. 7). A vanishing denominator skips the update. Stops, as the chord phase does,
-    on an update within the tolerance (successful), a non-finite one, ``limit`` iterations
-    or an update not at least halving (then ``result = -1``: the caller's Newton fallback).
+    2003, ch. 7). A vanishing denominator skips the update. Stops on an update within the
+    (tightened) tolerance (successful), or after ``limit`` iterations, on an update not at
+    least halving or a non-finite one (``RESULTS.max_steps_reached``: the caller's Newton
+    fallback takes over and reports a non-finite problem as such).
     One residual per iteration, as for the plain chord. Returns (y, steps, result, res).
     """
     dtype = y0.dtype
@@ -424,36 +420,36 @@ def _broyden(f, y0, jac0, limit: int, solver: Newton):
     inf = jnp.asarray(jnp.inf, dtype)
 
     def body(carry):
-        y, k, _, _, prev, H, s, F_prev = carry
+        y, k, _, prev, H, s, F_prev = carry
         F = f(y)
-        d = F - F_prev
-        Hd = _mv(H, d)
+        # The secant update with the previous step s (s = 0 on the first iteration, where
+        # the denominator vanishes and H stays jac0⁻¹).
+        Hd = H @ (F - F_prev)
         denom = s @ Hd
-        use = (k > 0) & (jnp.abs(denom) > 0) & jnp.isfinite(denom)
-        sH = s @ H
-        H = jnp.where(use, H + (s - Hd)[:, None] * sH[None, :] / jnp.where(use, denom, 1.0), H)
-        delta = -_mv(H, F)
-        res = jnp.max(jnp.abs(F), initial=0.0)
-        finite = jnp.all(jnp.isfinite(delta)) & jnp.isfinite(res)
+        use = denom != 0
+        H = jnp.where(use, H + jnp.outer(s - Hd, s @ H) / jnp.where(use, denom, 1.0), H)
+        delta = -(H @ F)
         y_new = y + delta
         scale = solver.atol + solver.rtol * jnp.abs(y_new)
+        # NaN propagates into size; every comparison with it is False, so a non-finite
+        # iterate counts as stalled and leaves for the caller's Newton fallback (which
+        # reports it), at no cost to the finite case.
         size = jnp.max(jnp.abs(delta) / scale, initial=0.0)
         k = k + 1
-        stalled = (k >= limit) | (size > 0.5 * prev)
         # Superlinear convergence: the error left after an update is much smaller than the
         # update, so a milder tightening than the fixed chord's keeps the momentum maps at
         # round-off (_BROYDEN_TIGHTEN).
-        result = jnp.where(
-            ~finite, RESULTS.nonfinite,
-            jnp.where(size <= _BROYDEN_TIGHTEN, RESULTS.successful,
-                      jnp.where(stalled, RESULTS.max_steps_reached, -1))).astype(jnp.int32)
-        y_new = jnp.where(finite, y_new, y)
-        return y_new, k, result, res, size, H, delta, F
+        converged = size <= _BROYDEN_TIGHTEN
+        stalled = (k >= limit) | ~(size <= 0.5 * prev)
+        result = jnp.where(converged, RESULTS.successful,
+                           jnp.where(stalled, RESULTS.max_steps_reached, -1)).astype(jnp.int32)
+        return y_new, k, result, size, H, delta, F
 
     zero_vec = jnp.zeros_like(y0)
-    init = (y0, jnp.asarray(0, jnp.int32), jnp.asarray(-1, jnp.int32), inf, inf, H0,
+    init = (y0, jnp.asarray(0, jnp.int32), jnp.asarray(-1, jnp.int32), inf, H0,
             zero_vec, zero_vec)
-    y, k, result, res, *_ = jax.lax.while_loop(lambda c: c[2] < 0, body, init)
+    y, k, result, _, _, _, F = jax.lax.while_loop(lambda c: c[2] < 0, body, init)
+    res = jnp.max(jnp.abs(F), initial=0.0)  # at the last iterate where it was evaluated
     return y, k, result, res
 
 
