@@ -2,7 +2,7 @@
 
 For every VI method, at h = 5e-3 over ``steps`` steps (10^4 by default), after compilation:
 
-* one trajectory (``simulate`` keeping only the final state),
+* one trajectory (``final_state``: no saved states, no batch axis),
 * a batch of ``batch`` trajectories (1024 by default; ``vmap``, sharded with ``shard_map``
   over every device in ``jax.devices()``: on a CPU-only machine, one XLA host device per
   core, see ``lgvi-jax bench --devices``),
@@ -38,6 +38,7 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+import equinox as eqx
 import jax
 import numpy as np
 
@@ -69,18 +70,18 @@ def _bench_jax(name: str, model, s0, steps: int, batch: int, repeats: int,
                chord: str = "exact") -> dict:
     method = dataclasses.replace(lj.RIGID_METHODS[name](), chord_matrix=chord)
     out: dict = {}
-    # One trajectory: the sweep's final-state rollout on one device with a batch of 1
-    # (no saved states, run-time step count).
-    states1 = initial_conditions(model, s0, 1, 0.0, 0)
-    fn, args = batch_arguments(model, method, states1, DT, steps, devices=jax.devices()[:1],
-                               kind="final")
+    # One trajectory: lj.final_state (no saved states, no batch axis), on one device.
+    params, static = eqx.partition((model, method), eqx.is_array)
+
+    def single(params, state, dt):
+        return lj.final_state(*eqx.combine(params, static), state, dt, steps)
+
     start = time.perf_counter()
-    compiled = fn.lower(*args).compile()
+    compiled = jax.jit(single).lower(params, s0, DT).compile()
     out["compile_s"] = time.perf_counter() - start
-    dyn = args[:1] + args[2:]  # the compiled program takes the dynamic arguments only
-    res = compiled(*dyn)
-    assert int(res["result"][0]) == 0, f"{name}: single run failed"
-    run_s = _best_time(lambda: compiled(*dyn), repeats)
+    _, code = compiled(params, s0, DT)
+    assert int(code) == 0, f"{name}: single run failed"
+    run_s = _best_time(lambda: compiled(params, s0, DT), repeats)
     out["single_steps_per_s"] = steps / run_s
     # The batch, sharded over all devices.
     states = initial_conditions(model, s0, batch, 0.01, 0)

@@ -72,6 +72,17 @@ from .base import AbstractIntegrator, StepInfo
 __all__ = ["LGVI", "AbstractLieVI", "HamelVI"]
 
 
+def _vee_AtB(A, B):
+    """``2 vee(AᵀB) = −Σ_l a_l × b_l`` over the rows ``a_l, b_l`` (a few fused vector
+    operations instead of a matrix product, a transpose and a read of its skew part)."""
+    return -jnp.sum(jnp.cross(A, B), axis=-2)
+
+
+def _vee_ABt(A, B):
+    """``2 vee(ABᵀ) = −Σ_l a^l × b^l`` over the columns ``a^l, b^l``."""
+    return -jnp.sum(jnp.cross(A, B, axisa=-2, axisb=-2), axis=-2)
+
+
 class AbstractLieVI(AbstractIntegrator):
     """The discrete-Lagrangian engine; subclasses define the map, the discrete Lagrangian
     and the variation matrices."""
@@ -153,8 +164,8 @@ class AbstractLieVI(AbstractIntegrator):
         dR0, dR1, dF, dq0, dq1, du, gw = jax.grad(G, argnums=(0, 1, 2, 3, 4, 5, 6))(
             R0, R1, FmI, q0, q1, u, w
         )
-        g0 = 2.0 * so3.vee(R0.T @ dR0 - dF @ F.T)
-        g1 = 2.0 * so3.vee(R1.T @ dR1 + F.T @ dF)
+        g0 = _vee_AtB(R0, dR0) - _vee_ABt(dF, F)
+        g1 = _vee_AtB(R1, dR1) + _vee_AtB(F, dF)
         return g0, g1, dq0 - du / h, dq1 + du / h, gw
 
     def legendre(self, model, R0, w, q0, u, h):
