@@ -229,7 +229,8 @@ def _markdown(r: dict) -> str:
         f"{r['repeats']} runs after compilation.",
         "",
         "Rows marked *mass chord* use `chord_matrix=\"mass\"` (the continuous Legendre "
-        "matrix as the chord matrix: more, cheaper iterations, the same solutions).",
+        "matrix as the chord matrix, updated by Broyden's formula: more, cheaper "
+        "iterations, the same solutions).",
         "",
         "| method | JAX 1 traj (steps/s) | Numba 1 traj | ratio | JAX batch of "
         f"{r['batch']} (steps/s) | Numba batch (all cores) | ratio | compile (s) 1 traj, "

@@ -124,7 +124,7 @@ class Newton(eqx.Module):
         broyden: with a given chord matrix (``jac0``), update its inverse after every
             iteration by Broyden's ("good") rank-one formula instead of keeping it fixed:
             superlinear instead of linear convergence at the cost of a few 5x5 products
-            per iteration (:func:`_broyden_body`). With the continuous Legendre matrix of
+            per iteration (:func:`_broyden`). With the continuous Legendre matrix of
             the Lie-group VIs this takes ~5 residuals per step instead of ~8 at
             h = 5e-3. The root and its derivatives do not change.
         unroll: the first ``unroll`` Newton iterations are traced as straight-line code
