@@ -322,19 +322,46 @@ def _final_one(model, method, state0, dt, n_steps, sample_every):
 _ONE = {"metrics": _sweep_one, "final": _final_one}
 _RUNNERS: dict[Any, Callable] = {}
 
+#: The most trajectories one device integrates as one vectorised batch; a larger share runs
+#: as a sequence of equal blocks (``lax.map`` over ``vmap``), whose working set stays in
+#: cache. Measured on one core (lgvi, mass chord, 2000 steps): 1.23e6 steps/s for 512 at
+#: once, 8.9e5 for 1024 or 2048 at once, 1.22e6 for 2048 in blocks of 512.
+BLOCK = 512
+
+
+def _vmap_in_blocks(f, states, block: int):
+    """``vmap(f)(states)`` over the leading axis, as a sequence of at most ``block``-sized
+    vectorised blocks: ``ceil(B / block)`` blocks of equal size, the last padded with copies
+    of the first state (computed and dropped), so that the step is compiled once."""
+    batch = jax.tree.leaves(states)[0].shape[0]
+    if batch <= block:
+        return jax.vmap(f)(states)
+    n_blocks = -(-batch // block)
+    size = -(-batch // n_blocks)
+    pad = n_blocks * size - batch
+
+    def blocks(x):
+        x = jnp.concatenate([x, jnp.broadcast_to(x[:1], (pad, *x.shape[1:]))]) if pad else x
+        return x.reshape(n_blocks, size, *x.shape[1:])
+
+    out = jax.lax.map(jax.vmap(f), jax.tree.map(blocks, states))
+    return jax.tree.map(lambda y: y.reshape(n_blocks * size, *y.shape[2:])[:batch], out)
+
 
 def _runner(devices: tuple, kind: str = "metrics") -> Callable:
     """A jitted batched rollout (``kind`` = ``"metrics"`` or ``"final"``), sharded over
-    ``devices`` with ``shard_map`` (cached per device set)."""
-    key = (devices, kind)
+    ``devices`` with ``shard_map``, each device's share in blocks of at most :data:`BLOCK`
+    (cached per device set, kind and block size)."""
+    block = BLOCK
+    key = (devices, kind, block)
     if key in _RUNNERS:
         return _RUNNERS[key]
     one = _ONE[kind]
 
     def batched(params, static, states, dt, n_steps, sample_every):
         model, method = eqx.combine(params, static)
-        return jax.vmap(one, in_axes=(None, None, 0, None, None, None))(
-            model, method, states, dt, n_steps, sample_every)
+        return _vmap_in_blocks(lambda s: one(model, method, s, dt, n_steps, sample_every),
+                               states, block)
 
     if len(devices) == 1:
         fn = jax.jit(batched, static_argnums=1)
