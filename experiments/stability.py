@@ -61,7 +61,7 @@ from lgvi_jax.models import CarPendulum, HarmonicOscillator, PhaseState
 from lgvi_jax.newton import RESULTS
 from lgvi_jax.plotting import figure, method_style, positive, save
 from lgvi_jax.scenes import resolve_methods
-from lgvi_jax.simulate import _guarded_step
+from lgvi_jax.simulate import guarded_step
 
 #: Methods probed, by scene name; names that do not resolve (not in this checkout) are
 #: skipped and listed in the summary.
@@ -121,7 +121,7 @@ def _probe(model, method, state0, h, n_steps, threshold):
 
     def body(c):
         k, state, code, failed_step, failed_res, emax = c
-        state, code, failed_step, failed_res, _ = _guarded_step(
+        state, code, failed_step, failed_res, _ = guarded_step(
             model, method, state, h, k, code, failed_step, failed_res)
         rel = jnp.abs(model.energy(state) - e0) / scale
         emax = jnp.where(jnp.isfinite(rel), jnp.maximum(emax, rel), emax)

@@ -74,7 +74,7 @@ from lgvi_jax.models import CarPendulum, HarmonicOscillator, PhaseState
 from lgvi_jax.plotting import figure, method_style, positive, save
 from lgvi_jax.reference import HandReference, moving_scene
 from lgvi_jax.scenes import get_scene, resolve_methods
-from lgvi_jax.simulate import _guarded_step
+from lgvi_jax.simulate import guarded_step
 
 try:  # optional peer (the ``bench`` extra)
     import diffrax
@@ -272,8 +272,8 @@ def _rollout(model, method, state0, h, steps_per_save, n_saves):
     """``n_saves * steps_per_save`` steps of ``h`` (both run-time: one compilation per
     method and model structure), the state saved after every ``steps_per_save`` steps into a
     buffer of ``MAX_SAVES + 1`` rows (row 0: the initial state; unused rows NaN). Failure
-    bookkeeping is :func:`lgvi_jax.simulate`'s (``_guarded_step``): first failure's code and
-    step, NaN states from there on."""
+    bookkeeping is :func:`lgvi_jax.simulate.guarded_step`'s: first failure's code and step,
+    NaN states from there on."""
     buf = jax.tree.map(
         lambda x: jnp.full((MAX_SAVES + 1, *jnp.shape(x)), jnp.nan, x.dtype).at[0].set(x),
         state0)
@@ -285,7 +285,7 @@ def _rollout(model, method, state0, h, steps_per_save, n_saves):
 
         def one(j, c):
             s, code, failed_step, failed_res = c
-            s, code, failed_step, failed_res, _ = _guarded_step(
+            s, code, failed_step, failed_res, _ = guarded_step(
                 model, method, s, h, i * steps_per_save + j, code, failed_step, failed_res)
             return s, code, failed_step, failed_res
 

@@ -42,7 +42,8 @@ from ._checks import is_concrete
 from .integrators.base import AbstractIntegrator
 from .newton import RESULTS
 
-__all__ = ["IntegrationError", "Trajectory", "final_state", "simulate", "simulate_timed"]
+__all__ = ["IntegrationError", "Trajectory", "final_state", "guarded_step", "simulate",
+           "simulate_timed"]
 
 
 class IntegrationError(RuntimeError):
@@ -138,9 +139,16 @@ def _all_finite(tree) -> jax.Array:
     return jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in leaves]))
 
 
-def _guarded_step(model, method, state, dt, k, code, failed_step, failed_res):
-    """One step with failure bookkeeping: the first failure's code, step index and residual
-    are kept, and from the failed step on the state is NaN."""
+def guarded_step(model, method, state, dt, k, code, failed_step, failed_res):
+    """One step of ``method`` with the rollouts' failure bookkeeping, for custom loops.
+
+    ``k`` is the step's index; ``code``, ``failed_step``, ``failed_res`` are the running
+    first failure's result code, step index and Newton residual (start with
+    ``RESULTS.successful``, -1 and 0). The step's code is the Newton solve's, or
+    :attr:`RESULTS.nonfinite` if the new state is not finite; the first failure is kept,
+    and from the failed step on the state is NaN. Returns ``(new_state, code, failed_step,
+    failed_res, info)``.
+    """
     new_state, info = method.step(model, state, dt)
     step_code = jnp.where(
         info.result != RESULTS.successful,
@@ -169,7 +177,7 @@ def _rollout(model, method, state0, dt, t0, n_steps: int, save_every: int,
     def one_step(carry, _):
         state, k, code, failed_step, failed_res, it_sum, it_max = carry
         running = code == RESULTS.successful
-        state, code, failed_step, failed_res, info = _guarded_step(
+        state, code, failed_step, failed_res, info = guarded_step(
             model, method, state, dt, k, code, failed_step, failed_res
         )
         iters = jnp.where(running, info.newton_steps, 0).astype(jnp.int32)
@@ -348,7 +356,7 @@ def simulate_timed(
 def _final_state(model, method, state0, dt, n_steps):
     def body(k, carry):
         state, code, failed_step, failed_res = carry
-        state, code, failed_step, failed_res, _ = _guarded_step(
+        state, code, failed_step, failed_res, _ = guarded_step(
             model, method, state, dt, k, code, failed_step, failed_res
         )
         return state, code, failed_step, failed_res

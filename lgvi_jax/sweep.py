@@ -70,7 +70,7 @@ from . import so3
 from .cli import write_npz_atomic
 from .newton import RESULTS
 from .progress import Progress
-from .simulate import _guarded_step
+from .simulate import guarded_step
 
 __all__ = [
     "FORMAT",
@@ -264,7 +264,7 @@ def _sweep_one(model, method, state0, dt, n_steps, sample_every):
     def body(k, carry):
         state, code, failed_step, failed_res, it_sum, it_max, maxima, last = carry
         running = code == RESULTS.successful
-        state, code, failed_step, failed_res, info = _guarded_step(
+        state, code, failed_step, failed_res, info = guarded_step(
             model, method, state, dt, k, code, failed_step, failed_res
         )
         iters = jnp.where(running, info.newton_steps, 0).astype(jnp.int32)
@@ -308,7 +308,7 @@ def _final_one(model, method, state0, dt, n_steps, sample_every):
 
     def body(k, carry):
         state, code, failed_step, failed_res = carry
-        state, code, failed_step, failed_res, _ = _guarded_step(
+        state, code, failed_step, failed_res, _ = guarded_step(
             model, method, state, dt, k, code, failed_step, failed_res)
         return state, code, failed_step, failed_res
 
