@@ -72,6 +72,7 @@ __all__ = [
     "newton_solve",
     "small_solve",
     "spd_inverse",
+    "spd_solve",
 ]
 
 
@@ -244,9 +245,21 @@ def spd_inverse(A: jax.Array) -> jax.Array:
     n = A.shape[-1]
     if A.shape != (n, n):
         raise ValueError(f"spd_inverse: expected a square matrix, got shape {A.shape}")
-    X = jnp.eye(n, dtype=A.dtype)
-    eye = np.eye(n)
-    for k in range(n):
+    return _gauss_jordan(A, jnp.eye(n, dtype=A.dtype))
+
+
+def spd_solve(A: jax.Array, b: jax.Array) -> jax.Array:
+    """``A⁻¹ b`` for a small symmetric positive definite ``A`` by the pivot-free elimination
+    of :func:`spd_inverse` (the inverse Legendre map of the models)."""
+    n = A.shape[-1]
+    if A.shape != (n, n) or b.shape != (n,):
+        raise ValueError(f"spd_solve: expected A (n, n) and b (n,), got {A.shape}, {b.shape}")
+    return _gauss_jordan(A, b[:, None])[:, 0]
+
+
+def _gauss_jordan(A, X):
+    eye = np.eye(A.shape[-1])
+    for k in range(A.shape[-1]):
         col = A[:, k] - eye[k]
         inv_pivot = 1.0 / A[k, k]
         A = A - col[:, None] * (A[k] * inv_pivot)[None, :]

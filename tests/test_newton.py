@@ -16,6 +16,7 @@ from lgvi_jax.newton import (
     raise_if_failed,
     small_solve,
     spd_inverse,
+    spd_solve,
 )
 
 
@@ -258,7 +259,8 @@ def test_given_chord_matrix_reaches_the_same_root():
 @pytest.mark.parametrize("n", [1, 2, 3, 5, 8])
 def test_spd_inverse_matches_numpy(n):
     """Pivot-free Gauss–Jordan on symmetric positive definite matrices, including badly
-    scaled ones (condition ~1e6): the inverse to round-off times the condition number."""
+    scaled ones (condition ~1e6): the inverse and the solve to round-off times the condition
+    number."""
     rng = np.random.default_rng(n)
     for scale in (1.0, 1e3):
         Q, _ = np.linalg.qr(rng.normal(size=(n, n)))
@@ -270,8 +272,13 @@ def test_spd_inverse_matches_numpy(n):
         np.testing.assert_allclose(X @ A, np.eye(n), atol=50 * cond * 1e-16)
         np.testing.assert_allclose(X, np.linalg.inv(A), rtol=0,
                                    atol=50 * cond * 1e-16 * np.abs(np.linalg.inv(A)).max())
+        b = rng.normal(size=n)
+        x = np.asarray(jax.jit(spd_solve)(jnp.asarray(A), jnp.asarray(b)))
+        np.testing.assert_allclose(A @ x, b, atol=50 * cond * 1e-16 * np.abs(b).max())
     with pytest.raises(ValueError, match="square"):
         spd_inverse(jnp.ones((2, 3)))
+    with pytest.raises(ValueError, match="spd_solve"):
+        spd_solve(jnp.eye(2), jnp.ones(3))
 
 
 def test_broyden_chord_is_superlinear_and_reaches_the_root():

@@ -48,7 +48,7 @@ import numpy as np
 
 from .. import so3
 from .._checks import check_float64_finite, is_concrete
-from ..newton import small_solve
+from ..newton import spd_solve
 
 __all__ = ["AbstractRigidBodyModel", "RigidState", "check_inertia", "left_gradient"]
 
@@ -162,7 +162,8 @@ class AbstractRigidBodyModel(eqx.Module):
         """Inverse Legendre transform ``(ω, v)`` (exact: the momenta are affine in the
         velocities, so one linear solve with the mass matrix from autodiff)."""
         mass, at_rest = self.mass_matrix(R, q)
-        x = small_solve(mass, jnp.concatenate([mu, p]) - at_rest)
+        # Symmetric positive definite: the pivot-free elimination (no gathers).
+        x = spd_solve(mass, jnp.concatenate([mu, p]) - at_rest)
         return x[:3], x[3:]
 
     def state_from_velocities(self, R, omega, q, v) -> RigidState:
