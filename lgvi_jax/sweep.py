@@ -220,9 +220,10 @@ def _one_initial_condition(model, state0, eps, key):
 def _initial_conditions(model, state0, eps, seed, indices):
     base = jax.random.key(seed)
     keys = jax.vmap(lambda i: jax.random.fold_in(base, i))(indices)
-    return jax.vmap(_one_initial_condition, in_axes=(None, None, None, 0))(
-        model, state0, eps, keys
-    )
+    # One condition at a time (lax.map), not vmap: every condition is then computed by the
+    # same unbatched code whatever n is, so condition i is bit-for-bit the same in any
+    # chunking (under vmap, XLA's vector and remainder loops can round differently: 1 ulp).
+    return jax.lax.map(lambda key: _one_initial_condition(model, state0, eps, key), keys)
 
 
 def initial_conditions(model, state0, n: int, perturb: float, seed: int,
