@@ -98,7 +98,7 @@ class AbstractLieVI(AbstractIntegrator):
     #: map's Jacobian in the velocity unknowns is this matrix + O(h)), improved after every
     #: iteration by Broyden's update (``Newton.broyden``): ~6 cheap iterations at
     #: h = 5e-3 (up to ``max(newton.chord_steps, 20)`` before the Newton fallback). The same
-    #: solutions to round-off; about 1.6x the batched throughput (``lgvi-jax bench``).
+    #: solutions to round-off; 1.2-1.7x the batched throughput (``lgvi-jax bench``).
     chord_matrix: str = eqx.field(static=True, default="exact")
 
     def __check_init__(self):
