@@ -46,9 +46,11 @@ import lgvi_jax as lj
 from lgvi_jax.sweep import batch_arguments, initial_conditions
 
 METHODS = ("lgvi", "hamel", "hamel-cayley", "hamel-exact")
-#: Each method with its default chord matrix (the Jacobian at the guess) and with the
-#: continuous Legendre matrix (``chord_matrix="mass"``): the same solutions.
-CHORDS = ("exact", "mass")
+#: Each method in the general engine with its default chord matrix (the Jacobian at the
+#: guess) and with the continuous Legendre matrix (``chord_matrix="mass"``), and as the
+#: fused scalar step (:class:`lgvi_jax.FusedCarPendulum`, what ``sweep`` uses by default
+#: for the car-pendulum): the same discrete equations and solutions.
+CHORDS = ("exact", "mass", "fused")
 DT = 5e-3
 
 
@@ -68,7 +70,10 @@ def _best_time(fn: Callable[[], object], repeats: int) -> float:
 
 def _bench_jax(name: str, model, s0, steps: int, batch: int, repeats: int,
                chord: str = "exact") -> dict:
-    method = dataclasses.replace(lj.RIGID_METHODS[name](), chord_matrix=chord)
+    if chord == "fused":
+        method = lj.FusedCarPendulum(name)
+    else:
+        method = dataclasses.replace(lj.RIGID_METHODS[name](), chord_matrix=chord)
     out: dict = {}
     # One trajectory: lj.final_state (no saved states, no batch axis), on one device.
     params, static = eqx.partition((model, method), eqx.is_array)
@@ -189,7 +194,7 @@ def run(out_dir: Path | str, quick: bool = False, log: Callable = print, *,
     for base, chord in ((n, c) for n in methods for c in CHORDS):
         row = {"jax": _bench_jax(base, model, s0, steps, batch, repeats, chord),
                "method": base, "chord_matrix": chord}
-        name = base if chord == "exact" else f"{base}, {chord} chord"
+        name = {"exact": base, "mass": f"{base}, mass chord", "fused": f"{base}, fused"}[chord]
         if nb is not None and base in nb.METHODS:
             if base not in numba_rows:  # one baseline per method, for both chord rows
                 numba_rows[base] = _bench_numba(nb, base, model, s0, steps, batch, repeats)
@@ -230,7 +235,10 @@ def _markdown(r: dict) -> str:
         "",
         "Rows marked *mass chord* use `chord_matrix=\"mass\"` (the continuous Legendre "
         "matrix as the chord matrix, updated by Broyden's formula: more, cheaper "
-        "iterations, the same solutions).",
+        "iterations, the same solutions). Rows marked *fused* are "
+        "`lgvi_jax.FusedCarPendulum`, the same discrete equations reduced to three "
+        "unknowns in scalar form (what `lgvi-jax sweep` uses for the car-pendulum by "
+        "default).",
         "",
         "| method | JAX 1 traj (steps/s) | Numba 1 traj | ratio | JAX batch of "
         f"{r['batch']} (steps/s) | Numba batch (all cores) | ratio | compile (s) 1 traj, "

@@ -260,11 +260,15 @@ def cmd_sweep(args: argparse.Namespace) -> int:
         t_final=args.t_final, n=args.n, perturb=args.perturb, seed=args.seed,
         chunk=args.chunk, sample_every=args.sample_every,
         parameters={k: v.tolist() for k, v in overrides.items()},
-        chord=args.chord,
+        chord=args.chord, engine=args.engine,
     )
     try:
         config.validate(list(scene.methods))
         model, state0 = scene.build(overrides)
+        from .integrators import fused_method
+
+        for name in config.methods:  # an impossible --engine fails before any work
+            fused_method(name, model, config.engine, config.chord)
     except (SweepError, ValueError) as err:
         raise UsageError(str(err)) from None
     quiet = args.json
@@ -280,6 +284,9 @@ def cmd_sweep(args: argparse.Namespace) -> int:
         from .integrators import with_chord_matrix
 
         def make_method(name):
+            fused = fused_method(name, model, config.engine, config.chord)
+            if fused is not None:
+                return fused
             return with_chord_matrix(scene.method(name), config.chord)
 
         summary = run_sweep(config, model, state0, make_method, Path(args.out),
@@ -522,6 +529,11 @@ def build_parser() -> argparse.ArgumentParser:
                     help="chord matrix of the Lie-group VIs' Newton solves: the Jacobian "
                     "(default) or the continuous Legendre matrix (same solutions, faster "
                     "batched)")
+    sw.add_argument("--engine", choices=("auto", "general", "fused"), default="auto",
+                    help="auto (default): the fused scalar steps where they exist (the "
+                    "car-pendulum's lgvi, hamel, hamel-cayley, hamel-exact; 2-6x faster "
+                    "batched), else the general autodiff engine; general: always the "
+                    "general engine (it honours --chord); fused: require the fused steps")
     sw.add_argument("--json", action="store_true",
                     help="print the summary as one JSON object (no progress bar)")
     sw.set_defaults(func=cmd_sweep)

@@ -118,6 +118,10 @@ class SweepConfig:
     #: The Lie-group VIs' chord matrix (``"exact"`` or ``"mass"``): the same solutions to
     #: round-off, ``"mass"`` is faster batched (``lgvi-jax bench``).
     chord: str = "exact"
+    #: ``"auto"`` (fused steps where they exist: the car-pendulum's lgvi and Hamel VIs,
+    #: :mod:`lgvi_jax.integrators.fused`), ``"general"`` (always the autodiff engine) or
+    #: ``"fused"`` (required). The same discrete equations; stored in the manifest.
+    engine: str = "auto"
 
     def to_json(self) -> dict[str, Any]:
         d = dataclasses.asdict(self)
@@ -125,6 +129,8 @@ class SweepConfig:
         d["dts"] = list(self.dts)
         if d["chord"] == "exact":  # the default: manifests of earlier sweeps stay resumable
             del d["chord"]
+        if d["engine"] == "general":  # what sweeps before the fused steps used
+            del d["engine"]
         return d
 
     def n_steps(self, dt: float) -> int:
@@ -156,6 +162,11 @@ class SweepConfig:
             raise SweepError("--method: give at least one method (e.g. lgvi,hamel)")
         if self.chord not in ("exact", "mass"):
             raise SweepError(f"--chord must be 'exact' or 'mass', got {self.chord!r}")
+        from .integrators.fused import ENGINES
+
+        if self.engine not in ENGINES:
+            raise SweepError(f"--engine must be one of {', '.join(ENGINES)}, got "
+                             f"{self.engine!r}")
         if len(set(self.methods)) != len(self.methods):
             raise SweepError(f"--method: a method is listed twice: {','.join(self.methods)}")
         if valid_methods is not None:

@@ -267,7 +267,7 @@ def test_mass_chord_sweep_gives_the_same_results(tmp_path, capsys):
         out = tmp_path / chord
         argv = ["sweep", "car-pendulum", "--method", "lgvi,lgvi@4", "--dt", "0.01",
                 "--t-final", "2", "--n", "4", "--out", str(out), "--json",
-                "--chord", chord]
+                "--chord", chord, "--engine", "general"]
         assert main(argv) == 0
         capsys.readouterr()
         outs[chord] = list(csv.DictReader(open(out / "trajectories.csv")))

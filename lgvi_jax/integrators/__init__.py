@@ -14,6 +14,7 @@ from .composition import (
     resolve_method,
     with_chord_matrix,
 )
+from .fused import FusedCarPendulum, fused_method
 from .galerkin import GalerkinVI
 from .gauss_legendre import GaussLegendre
 from .lie import LGVI, AbstractLieVI, HamelVI
@@ -59,6 +60,7 @@ __all__ = [
     "AbstractLieVI",
     "Composition",
     "CompositionScheme",
+    "FusedCarPendulum",
     "GalerkinVI",
     "GaussLegendre",
     "HamelVI",
@@ -66,6 +68,7 @@ __all__ = [
     "StepInfo",
     "StormerVerlet",
     "compose",
+    "fused_method",
     "parse_method",
     "resolve_method",
     "with_chord_matrix",

@@ -1,0 +1,329 @@
+r"""Fused car-pendulum steps: the engine's discrete equations for the 3D car-pendulum,
+reduced by hand to three equations in the rotation increment and written in scalar
+components, so that XLA fuses a Newton iteration into a handful of elementwise kernels.
+
+**Why.** The general engine (:mod:`lgvi_jax.integrators.lie`) builds the residual by
+autodiff of the discrete Lagrangian through small vector and matrix operations: ~70 XLA
+kernels per step plus ~40 per Newton iteration, each costing a few nanoseconds per
+trajectory in a batch and ~10 ns for a single trajectory, whatever its arithmetic (profiled,
+README "Throughput"). Here every quantity is a tuple of scalars (a structure of arrays under
+``vmap``: one contiguous array per component), so the whole residual is elementwise and one
+iteration is ~10 kernels. Same equations, same solutions to the solver tolerance (tested
+against the general engine in ``tests/test_fused.py``); 2-3x the batched throughput of the
+general engine's fastest setting (``lgvi-jax bench``).
+
+**Equations.** With ``F = R_kᵀR_{k+1} = I + c_1ŵ + c_2ŵ²``, ``u = (q_{k+1} − q_k)/h``,
+``ρ = ρ_c``, ``e = w × ρ``, ``a_k = R_kᵀPᵀu``, ``a_{k+1} = Fᵀa_k``, ``b = R_kᵀe_3`` and
+``K = μ_k + (h/2) m g ρ × b`` (derivations in ``experiments/numba_lgvi.py`` and
+``experiments/numba_hamel.py``, whose Numba baselines solve the same reduced equations):
+
+* ``lgvi`` (:class:`~lgvi_jax.integrators.lie.LGVI`, Cayley coordinates
+  ``c_1 = 4/(4+θ²)``, ``c_2 = c_1/2``): the cart equation ``p_k = (m+M)u + (m/h) P R_k
+  (F − I)ρ`` gives ``u`` for a given ``w``; the residual is ``c_1Jw/h + c_2 w×Jw/h +
+  mρ×a_k − K`` and ``μ_{k+1} = c_1Jw/h − c_2 w×Jw/h + mρ×a_{k+1} + (h/2)mgρ×R_{k+1}ᵀe_3``.
+* ``hamel``, ``hamel-cayley``, ``hamel-exact`` (:class:`~lgvi_jax.integrators.lie.HamelVI`
+  with ``(exp, paper)``, ``(cayley, paper)``, ``(exp, exact)``): ``p_k = (m+M)u +
+  (m/2h)PR_k(I + F)e`` gives ``u``; with ``g_w = Jw/h + (m/2)ρ×(a_k + a_{k+1})``,
+  ``x = w × g_w`` and ``y = g_w + d w×x`` (``d = 0`` for the paper's variation,
+  ``d = 1/θ² − cot(θ/2)/(2θ)`` for the exact one) the residual is ``y + x/2 −
+  (m/2)e×a_k − K`` and ``μ_{k+1} = y − x/2 + (m/2)e×a_{k+1} + (h/2)mgρ×R_{k+1}ᵀe_3``.
+
+In every method ``p_{k+1} = p_k`` exactly and ``q_{k+1} = q_k + hu``.
+
+**Solver.** Newton's method on ``w`` from ``w = 0``, first as a chord iteration with the
+Jacobian at ``w = 0`` (forward-mode autodiff, three tangents; XLA folds the evaluation at
+the constant zero, so it costs little), inverted by cofactors. When an update fails to
+halve the previous one or stops being finite, a second loop continues from the last finite
+iterate with a fresh Jacobian every iteration (plain Newton); under ``vmap`` it costs
+nothing unless some trajectory needs it. Convergence: ``|Δw_i| <= tol (h + |w_i|)``, the
+general engine's ``|Δξ_i| <= tol (1 + |ξ_i|)`` for ``ξ = w/h``, with ``tol = 1e-14``
+(:attr:`FusedCarPendulum.tol`). Result codes as
+:data:`~lgvi_jax.newton.RESULTS`; ``newton_steps`` counts residual evaluations in the loops.
+
+**Limits.** Only :class:`~lgvi_jax.models.rigid_bodies.CarPendulum`. The loops are
+``while`` loops: forward-mode derivatives only, through the iterations (no implicit
+adjoint); for gradients (inertia fitting) use the general methods.
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from ..models.rigid import RigidState
+from ..models.rigid_bodies import CarPendulum
+from ..newton import RESULTS
+from .base import AbstractIntegrator, StepInfo
+from .lie import LGVI, HamelVI
+
+#: fused method name -> the general method with the same discrete equations
+KINDS = {
+    "lgvi": LGVI,
+    "hamel": lambda: HamelVI(map="exp", variation="paper"),
+    "hamel-cayley": lambda: HamelVI(map="cayley", variation="paper"),
+    "hamel-exact": lambda: HamelVI(map="exp", variation="exact"),
+}
+
+_TAYLOR_THETA_SQ = 1e-2  # as lgvi_jax.so3: series for θ < 0.1
+
+
+# --- three-vectors as tuples of scalars -----------------------------------------------
+
+def _cross(a, b):
+    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+
+
+def _dot(a, b):
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+def _comb(*terms):
+    """``Σ c_i v_i`` for pairs ``(c_i, v_i)`` of a scalar and a vector."""
+    return tuple(sum(c * v[i] for c, v in terms) for i in range(3))
+
+
+def _matvec(A, x):
+    return tuple(_dot(row, x) for row in A)
+
+
+def _coeffs(kind: str, t2):
+    """``(c_1, c_2, d)`` for ``θ² = t2``: ``F = I + c_1ŵ + c_2ŵ²`` and the exact
+    variation's ``d`` (0 otherwise); series branches for ``θ < 0.1`` as in
+    :mod:`lgvi_jax.so3`. (Evaluating sin and cos by long series instead was measured 5x
+    slower batched: XLA inlines the polynomial into every kernel that uses it.)"""
+    if kind in ("lgvi", "hamel-cayley"):
+        c1 = 4.0 / (4.0 + t2)
+        return c1, 0.5 * c1, 0.0
+    small = t2 < _TAYLOR_THETA_SQ
+    s1 = 1.0 + t2 * (-1.0 / 6 + t2 * (1.0 / 120 + t2 * (-1.0 / 5040 + t2 * (
+        1.0 / 362880 + t2 * (-1.0 / 39916800)))))
+    s2 = 0.5 + t2 * (-1.0 / 24 + t2 * (1.0 / 720 + t2 * (-1.0 / 40320 + t2 * (
+        1.0 / 3628800 + t2 * (-1.0 / 479001600)))))
+    tt = jnp.where(small, 1.0, t2)  # the closed forms only where they are accurate
+    t = jnp.sqrt(tt)
+    sh = jnp.sin(0.5 * t)
+    c1 = jnp.where(small, s1, jnp.sin(t) / t)
+    c2 = jnp.where(small, s2, 2.0 * sh * sh / tt)
+    if kind != "hamel-exact":
+        return c1, c2, 0.0
+    sd = 1.0 / 12 + t2 * (1.0 / 720 + t2 * (1.0 / 30240 + t2 * (
+        1.0 / 1209600 + t2 * (1.0 / 47900160))))
+    d = jnp.where(small, sd, 1.0 / tt - jnp.cos(0.5 * t) / (2.0 * t * sh))
+    return c1, c2, d
+
+
+def _transpose_rotate(c1, c2, t2, w, a):
+    """``Fᵀa = a − c_1 w×a + c_2 (w (w·a) − θ² a)``."""
+    return _comb((1.0, a), (-c1, _cross(w, a)), (c2 * _dot(w, a), w), (-c2 * t2, a))
+
+
+def _equations(kind, prm, h, R0, K, p, w):
+    """The reduced step for the increment ``w``: ``(residual, u, μ_{k+1} without its
+    gravity term, c_1, c_2)``."""
+    m, M, rho, J = prm["m"], prm["M"], prm["rho"], prm["J"]
+    t2 = _dot(w, w)
+    c1, c2, d = _coeffs(kind, t2)
+    e = _cross(w, rho)
+    if kind == "lgvi":
+        g, k = _comb((c1, e), (c2, _cross(w, e))), m / h  # (F − I)ρ
+    else:
+        g, k = _comb((2.0 - c2 * t2, e), (c1, _cross(w, e))), 0.5 * m / h  # (I + F)e
+    inv_mass = 1.0 / (m + M)
+    u = tuple((p[i] - k * _dot(R0[i], g)) * inv_mass for i in range(2))
+    a = tuple(R0[0][j] * u[0] + R0[1][j] * u[1] for j in range(3))  # R_kᵀPᵀu
+    b = _transpose_rotate(c1, c2, t2, w, a)  # a_{k+1} = Fᵀa_k
+    Jw = tuple(x / h for x in _matvec(J, w))
+    if kind == "lgvi":
+        x = _comb((c2, _cross(w, Jw)),)
+        res = _comb((c1, Jw), (1.0, x), (m, _cross(rho, a)), (-1.0, K))
+        nxt = _comb((c1, Jw), (-1.0, x), (m, _cross(rho, b)))
+        return res, u, nxt, c1, c2
+    gw = _comb((1.0, Jw), (0.5 * m, _cross(rho, _comb((1.0, a), (1.0, b)))))
+    x = _cross(w, gw)
+    y = _comb((1.0, gw), (d, _cross(w, x))) if kind == "hamel-exact" else gw
+    res = _comb((1.0, y), (0.5, x), (-0.5 * m, _cross(e, a)), (-1.0, K))
+    nxt = _comb((1.0, y), (-0.5, x), (0.5 * m, _cross(e, b)))
+    return res, u, nxt, c1, c2
+
+
+def _inverse_jacobian(f, w):
+    """The inverse of ``∂f/∂w`` (three forward-mode tangents), by cofactors, row-major."""
+    cols = [jax.jvp(f, (w,), (tuple(jnp.asarray(float(i == j), w[0].dtype)
+                                    for i in range(3)),))[1] for j in range(3)]
+    (j00, j10, j20), (j01, j11, j21), (j02, j12, j22) = cols
+    k00 = j11 * j22 - j12 * j21
+    k01 = j12 * j20 - j10 * j22
+    k02 = j10 * j21 - j11 * j20
+    idet = 1.0 / (j00 * k00 + j01 * k01 + j02 * k02)
+    return (idet * k00, idet * (j02 * j21 - j01 * j22), idet * (j01 * j12 - j02 * j11),
+            idet * k01, idet * (j00 * j22 - j02 * j20), idet * (j02 * j10 - j00 * j12),
+            idet * k02, idet * (j01 * j20 - j00 * j21), idet * (j00 * j11 - j01 * j10))
+
+
+# loop status
+_RUNNING, _CONVERGED, _NEWTON, _NONFINITE = 0, 1, 2, 3
+
+
+def _solve(f, h, tol, max_steps, dtype):
+    """``w`` with ``f(w) = 0`` (module docstring): ``(w, iterations, status)``."""
+
+    def update(Ji, w):
+        fw = f(w)
+        d = tuple(-(Ji[3 * i] * fw[0] + Ji[3 * i + 1] * fw[1] + Ji[3 * i + 2] * fw[2])
+                  for i in range(3))
+        new = tuple(wi + di for wi, di in zip(w, d, strict=True))
+        size = jnp.maximum(jnp.maximum(jnp.abs(d[0]) / (h + jnp.abs(new[0])),
+                                       jnp.abs(d[1]) / (h + jnp.abs(new[1]))),
+                           jnp.abs(d[2]) / (h + jnp.abs(new[2]))) / tol
+        return new, size
+
+    zero = tuple(jnp.zeros((), dtype) for _ in range(3))
+    Ji0 = _inverse_jacobian(f, zero)
+
+    def chord(carry):
+        w, it, prev, _ = carry
+        new, size = update(Ji0, w)
+        finite = jnp.isfinite(size)
+        status = jnp.where(size <= 1.0, _CONVERGED,
+                           jnp.where(finite & (size <= 0.5 * prev), _RUNNING, _NEWTON))
+        status = status.astype(jnp.int32)
+        w = tuple(jnp.where(finite, a, b) for a, b in zip(new, w, strict=True))
+        return w, it + 1, size, status
+
+    def newton(carry):
+        w, it, _, _ = carry
+        new, size = update(_inverse_jacobian(f, w), w)
+        status = jnp.where(size <= 1.0, _CONVERGED,
+                           jnp.where(jnp.isfinite(size), _NEWTON, _NONFINITE))
+        return new, it + 1, size, status.astype(jnp.int32)
+
+    def going(want):
+        return lambda c: (c[3] == want) & (c[1] < max_steps)
+
+    init = (zero, jnp.asarray(0, jnp.int32), jnp.asarray(jnp.inf, dtype),
+            jnp.asarray(_RUNNING, jnp.int32))
+    carry = jax.lax.while_loop(going(_RUNNING), chord, init)
+    w, it, _, status = jax.lax.while_loop(going(_NEWTON), newton, carry)
+    return w, it, status
+
+
+class FusedCarPendulum(AbstractIntegrator):
+    """A car-pendulum VI step in fused scalar form (module docstring): ``method`` is
+    ``"lgvi"``, ``"hamel"``, ``"hamel-cayley"`` or ``"hamel-exact"``, the discrete
+    equations of the general method of that name (:meth:`general`)."""
+
+    method: str = eqx.field(static=True, default="lgvi")
+    #: Stop when ``|Δw_i| <= tol (h + |w_i|)``. Tighter than the general engine's 1e-12
+    #: because the chord iteration converges linearly, so the error left after the last
+    #: update is comparable to it: with 1e-12 the vertical angular momentum drifted 2e-12
+    #: to 9e-12 over 5000-10000 steps, with 1e-14 7.7e-14 to 2.2e-13 (the general engine:
+    #: 4e-14 to 6e-14), for one iteration more (9 at h = 5e-3).
+    tol: float = eqx.field(static=True, default=1e-14)
+    max_steps: int = eqx.field(static=True, default=40)
+
+    order: ClassVar[int] = 2
+    symmetric: ClassVar[bool] = True
+    implicit: ClassVar[bool] = True
+
+    def __check_init__(self):
+        if self.method not in KINDS:
+            raise ValueError(f"FusedCarPendulum: method must be one of {tuple(KINDS)}, got "
+                             f"{self.method!r}")
+        if not self.tol > 0:
+            raise ValueError(f"FusedCarPendulum: tol must be > 0, got {self.tol!r}")
+        if not (isinstance(self.max_steps, int) and self.max_steps >= 1):
+            raise ValueError(f"FusedCarPendulum: max_steps must be an int >= 1, got "
+                             f"{self.max_steps!r}")
+
+    def general(self) -> AbstractIntegrator:
+        """The general-engine method with the same discrete equations."""
+        return KINDS[self.method]()
+
+    @property
+    def name(self) -> str:
+        return self.method
+
+    @property
+    def symplectic(self) -> bool:
+        return self.general().symplectic
+
+    def describe(self) -> str:
+        return super().describe() + ", fused car-pendulum step"
+
+    def check_model(self, model) -> None:
+        if not isinstance(model, CarPendulum):
+            raise ValueError(f"FusedCarPendulum: model must be a CarPendulum, got "
+                             f"{type(model).__name__}; use the general methods "
+                             "(lgvi_jax.RIGID_METHODS) for other models")
+
+    def step(self, model, state: RigidState, dt):
+        dtype = state.R.dtype
+        h = jnp.asarray(dt, dtype)
+        R0 = tuple(tuple(state.R[..., i, j] for j in range(3)) for i in range(3))
+        mu0 = tuple(state.mu[..., i] for i in range(3))
+        p0 = tuple(state.p[..., i] for i in range(2))
+        J = jnp.asarray(model.J, dtype)
+        prm = {"m": model.m, "M": model.M,
+               "rho": tuple(model.rho_c[..., i] for i in range(3)),
+               "J": tuple(tuple(J[..., i, j] for j in range(3)) for i in range(3))}
+        hg = 0.5 * h * model.m * model.g
+        K = _comb((1.0, mu0), (hg, _cross(prm["rho"], R0[2])))
+
+        def residual(w):
+            return _equations(self.method, prm, h, R0, K, p0, w)[0]
+
+        w, its, status = _solve(residual, h, self.tol, self.max_steps, dtype)
+        res, u, nxt, c1, c2 = _equations(self.method, prm, h, R0, K, p0, w)
+        # R_{k+1} = R_k F,  F = I + c_1 ŵ + c_2 (w wᵀ − θ² I)
+        dg = 1.0 - c2 * _dot(w, w)
+        W = ((0.0, -w[2], w[1]), (w[2], 0.0, -w[0]), (-w[1], w[0], 0.0))
+        F = tuple(tuple((dg if i == j else 0.0) + c2 * w[i] * w[j] + c1 * W[i][j]
+                        for j in range(3)) for i in range(3))
+        R1 = tuple(tuple(_dot(R0[i], tuple(F[k][j] for k in range(3))) for j in range(3))
+                   for i in range(3))
+        mu1 = _comb((1.0, nxt), (hg, _cross(prm["rho"], R1[2])))
+        new_state = RigidState(
+            R=jnp.stack([jnp.stack(row, -1) for row in R1], -2),
+            mu=jnp.stack(mu1, -1),
+            q=state.q + h * jnp.stack(u, -1),
+            p=state.p,
+        )
+        result = jnp.where(status == _CONVERGED, RESULTS.successful,
+                           jnp.where(status == _NONFINITE, RESULTS.nonfinite,
+                                     RESULTS.max_steps_reached)).astype(jnp.int32)
+        residual_norm = jnp.maximum(jnp.maximum(jnp.abs(res[0]), jnp.abs(res[1])),
+                                    jnp.abs(res[2]))
+        return new_state, StepInfo(newton_steps=its, result=result, residual=residual_norm)
+
+
+ENGINES = ("auto", "general", "fused")
+
+
+def fused_method(name: str, model, engine: str = "auto",
+                 chord: str = "exact") -> FusedCarPendulum | None:
+    """The fused step for method ``name`` on ``model`` under the engine choice ``engine``
+    (``"auto"``: fused where one exists, ``"general"``: never, ``"fused"``: required), or
+    ``None`` for the general engine. ``chord`` is the general engine's chord matrix: asking
+    for ``"mass"`` explicitly selects the general engine under ``"auto"``. Raises
+    ``ValueError`` (naming the option) when ``engine="fused"`` cannot be honoured."""
+    if engine not in ENGINES:
+        raise ValueError(f"--engine must be one of {', '.join(ENGINES)}, got {engine!r}")
+    available = name in KINDS and isinstance(model, CarPendulum)
+    if engine == "fused":
+        if not available:
+            raise ValueError(f"--engine fused: only the car-pendulum's {', '.join(KINDS)} "
+                             f"have a fused step, not {name!r} on {type(model).__name__}; "
+                             "use --engine auto or general")
+        if chord != "exact":
+            raise ValueError("--engine fused: --chord applies to the general engine only; "
+                             "drop --chord or use --engine general")
+        return FusedCarPendulum(name)
+    if engine == "general" or not available or chord != "exact":
+        return None
+    return FusedCarPendulum(name)
+
+
+__all__ = ["ENGINES", "KINDS", "FusedCarPendulum", "fused_method"]

@@ -1,0 +1,182 @@
+"""The fused car-pendulum steps solve the general engine's discrete equations: the same
+steps and trajectories, the same conservation, failures as values, and the engine choice."""
+
+import csv
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import lgvi_jax as lj
+from lgvi_jax.cli import main
+from lgvi_jax.integrators import fused
+from lgvi_jax.sweep import initial_conditions, run_batch
+
+
+@pytest.fixture(scope="module")
+def car():
+    model = lj.CarPendulum()
+    return model, model.default_state()
+
+
+def _max_diff(a, b):
+    return max(float(jnp.max(jnp.abs(x - y))) for x, y in
+               zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True))
+
+
+def _rotation_angle(R0, R1):
+    F = jnp.swapaxes(R0, -1, -2) @ R1
+    return jnp.arccos(jnp.clip((jnp.trace(F, axis1=-2, axis2=-1) - 1) / 2, -1, 1))
+
+
+@pytest.mark.parametrize("kind", list(fused.KINDS))
+def test_one_step_equals_the_general_engine(car, kind):
+    model, s0 = car
+    states = initial_conditions(model, s0, 16, 0.3, seed=3)
+    f, g = fused.FusedCarPendulum(kind), fused.KINDS[kind]()
+    for dt in (5e-3, 0.05, 0.1):
+        a, ia = jax.vmap(lambda s, f=f, dt=dt: f.step(model, s, dt))(states)
+        b, ib = jax.vmap(lambda s, g=g, dt=dt: g.step(model, s, dt))(states)
+        assert np.all(np.asarray(ia.result) == 0) and np.all(np.asarray(ib.result) == 0)
+        # Both solve to |Δξ_i| <= 1e-12 (1 + |ξ_i|) from different starts; the states agree
+        # to that tolerance times the state's scale (measured 6e-13 at dt = 0.1).
+        assert _max_diff(a, b) < 5e-12, dt
+        assert np.all(np.asarray(ia.residual) < 1e-12)
+        np.testing.assert_array_equal(a.p, states.p)  # the cart momentum is exact
+    # dt = 0.1 reaches rotation angles beyond the series branch (θ > 0.1) of the exp maps.
+    assert float(jnp.max(_rotation_angle(states.R, a.R))) > 0.1
+
+
+@pytest.mark.parametrize("kind", list(fused.KINDS))
+def test_trajectory_equals_the_general_engine(car, kind):
+    model, s0 = car
+    a, ca = lj.final_state(model, fused.FusedCarPendulum(kind), s0, 5e-3, 2000)
+    b, cb = lj.final_state(model, fused.KINDS[kind](), s0, 5e-3, 2000)
+    assert int(ca) == 0 and int(cb) == 0
+    # Per-step differences ~1e-14 (the solver tolerance) accumulate over 2000 steps of a
+    # chaotic-looking but regular motion: measured 9e-12.
+    assert _max_diff(a, b) < 1e-10
+
+
+def test_conservation_over_a_long_run(car):
+    """lgvi, hamel-cayley and hamel-exact conserve the vertical angular momentum to
+    round-off (discrete Noether), keep the energy error bounded, and the cart momentum
+    exact."""
+    model, s0 = car
+    inv0 = model.invariants(s0)
+    for kind in ("lgvi", "hamel-cayley", "hamel-exact"):
+        traj = lj.simulate(model, fused.FusedCarPendulum(kind), s0, 0.01, 5000,
+                           save_every=50)
+        assert bool(traj.ok)
+        lz = traj.invariants["angular_momentum_z"]
+        # Round-off and the solver tolerance (FusedCarPendulum.tol): measured 2.2e-13 for
+        # lgvi; with tol = 1e-12 it was 8.8e-12, which this bound catches.
+        assert float(jnp.max(jnp.abs(lz - inv0["angular_momentum_z"]))) < 1e-12, kind
+        np.testing.assert_array_equal(traj.state.p[-1], s0.p)
+        err = np.abs(np.asarray(traj.invariants["energy"]) - float(inv0["energy"]))
+        err /= abs(float(inv0["energy"]))
+        # Second order at h = 0.01: O(1e-3) oscillations, no secular growth (the second half
+        # of the run no worse than the first: the error is bounded, not drifting).
+        half = len(err) // 2
+        assert err.max() < 2e-2 and err[half:].max() < 1.5 * err[:half].max(), kind
+
+
+def test_batch_equals_a_loop_and_failures_are_isolated(car):
+    model, s0 = car
+    method = fused.FusedCarPendulum("lgvi")
+    states = initial_conditions(model, s0, 4, 0.05, seed=4)
+    good = run_batch(model, method, states, 0.01, 100)
+    for i in range(4):
+        traj = lj.simulate(model, method, jax.tree.map(lambda x, i=i: x[i], states), 0.01, 100)
+        assert int(good["newton_max"][i]) == int(traj.newton_max)
+        e0 = model.invariants(jax.tree.map(lambda x, i=i: x[i], states))["energy"]
+        err = jnp.abs(traj.invariants["energy"] - e0) / jnp.abs(e0)
+        # The batched code contracts differently (vector loops): round-off, ~1e-15 absolute.
+        np.testing.assert_allclose(good["energy_error_max"][i], float(jnp.max(err)),
+                                   rtol=1e-9, atol=1e-13)
+    mu = states.mu.at[1, 0].set(jnp.nan).at[2].multiply(1e4)
+    bad = run_batch(model, method, lj.RigidState(R=states.R, mu=mu, q=states.q, p=states.p),
+                    0.01, 100)
+    assert bad["result"][1] == lj.RESULTS.nonfinite and bad["failed_step"][1] == 0
+    assert bad["result"][2] != 0 and bad["failed_step"][2] >= 0
+    for i in (0, 3):
+        for key in good:
+            np.testing.assert_array_equal(bad[key][i], good[key][i], err_msg=key)
+
+
+def _solve(f):
+    return fused._solve(f, jnp.float64(1.0), 1e-12, 40, jnp.float64)
+
+
+def test_solver_falls_back_to_newton_when_the_chord_stalls():
+    # f = e^w − 2 componentwise: the chord from J(0) = I has the map's slope 1 − e^w = −1
+    # at the root and oscillates; Newton from the last iterate converges to log 2.
+    w, its, status = _solve(lambda w: tuple(jnp.exp(x) - 2.0 for x in w))
+    assert int(status) == fused._CONVERGED
+    np.testing.assert_allclose(np.asarray(w), np.log(2.0), rtol=1e-14)
+    assert 2 < int(its) < 40
+
+
+def test_solver_reports_failures():
+    _, _, status = _solve(lambda w: tuple(jnp.sqrt(x - 5.0) for x in w))
+    assert int(status) == fused._NONFINITE
+    # No real root: the iteration wanders until the cap.
+    _, its, status = _solve(lambda w: tuple(x * x + 2.0 * x + 2.0 for x in w))
+    assert int(status) != fused._CONVERGED and int(its) <= 40
+
+
+def test_step_reports_a_failed_solve_as_a_code(car):
+    model, s0 = car
+    state = lj.RigidState(R=s0.R, mu=s0.mu * 1e4, q=s0.q, p=s0.p)
+    _, info = fused.FusedCarPendulum("lgvi", max_steps=3).step(model, state, 0.01)
+    assert int(info.result) == lj.RESULTS.max_steps_reached and int(info.newton_steps) == 3
+    with pytest.raises(lj.IntegrationError, match="step"):
+        lj.simulate(model, fused.FusedCarPendulum("lgvi", max_steps=3), state, 0.01,
+                    5).raise_if_failed()
+
+
+def test_bad_arguments_and_models():
+    with pytest.raises(ValueError, match="method must be one of"):
+        fused.FusedCarPendulum("rk4")
+    with pytest.raises(ValueError, match="max_steps"):
+        fused.FusedCarPendulum("lgvi", max_steps=0)
+    with pytest.raises(ValueError, match="model must be a CarPendulum"):
+        fused.FusedCarPendulum("lgvi").check_model(lj.FreeRigidBody())
+
+
+def test_engine_choice(car):
+    model, _ = car
+    assert isinstance(fused.fused_method("hamel", model), fused.FusedCarPendulum)
+    assert fused.fused_method("hamel", model, "general") is None
+    assert fused.fused_method("lgvi", model, chord="mass") is None  # --chord: general
+    assert fused.fused_method("lgvi@4", model) is None  # compositions: general
+    assert fused.fused_method("lgvi", lj.FreeRigidBody()) is None
+    with pytest.raises(ValueError, match="--engine fused: only"):
+        fused.fused_method("rk4", model, "fused")
+    with pytest.raises(ValueError, match="--engine must be one of"):
+        fused.fused_method("lgvi", model, "fast")
+
+
+def test_sweep_engines_give_the_same_results(tmp_path, capsys):
+    rows = {}
+    for engine in ("general", "fused"):
+        out = tmp_path / engine
+        argv = ["sweep", "car-pendulum", "--method", "lgvi,hamel", "--dt", "0.01",
+                "--t-final", "2", "--n", "4", "--out", str(out), "--json",
+                "--engine", engine]
+        assert main(argv) == 0
+        capsys.readouterr()
+        rows[engine] = list(csv.DictReader(open(out / "trajectories.csv")))
+        config = json.loads((out / "manifest.json").read_text())["config"]
+        assert config.get("engine", "general") == engine
+    for a, b in zip(rows["general"], rows["fused"], strict=True):
+        assert (a["method"], a["index"]) == (b["method"], b["index"])
+        assert int(a["result"]) == 0 and int(b["result"]) == 0
+        # Round-off of two solvers of the same equations (measured ~1e-13 absolute).
+        assert abs(float(a["energy_error_max"]) - float(b["energy_error_max"])) <= 1e-11
+    code = main(["sweep", "oscillator", "--method", "verlet", "--dt", "0.1", "--t-final",
+                 "1", "--n", "2", "--engine", "fused", "--out", str(tmp_path / "x")])
+    err = capsys.readouterr().err
+    assert code == 2 and "--engine fused: only" in err and "Traceback" not in err
