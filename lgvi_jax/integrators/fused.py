@@ -9,8 +9,8 @@ trajectory in a batch and ~10 ns for a single trajectory, whatever its arithmeti
 README "Throughput"). Here every quantity is a tuple of scalars (a structure of arrays under
 ``vmap``: one contiguous array per component), so the whole residual is elementwise and one
 iteration is ~10 kernels. Same equations, same solutions to the solver tolerance (tested
-against the general engine in ``tests/test_fused.py``); 2-3x the batched throughput of the
-general engine's fastest setting (``lgvi-jax bench``).
+against the general engine in ``tests/test_fused.py``); several times the general engine's
+throughput (``lgvi-jax bench``, README).
 
 **Equations.** With ``F = R_kᵀR_{k+1} = I + c_1ŵ + c_2ŵ²``, ``u = (q_{k+1} − q_k)/h``,
 ``ρ = ρ_c``, ``e = w × ρ``, ``a_k = R_kᵀPᵀu``, ``a_{k+1} = Fᵀa_k``, ``b = R_kᵀe_3`` and
@@ -40,13 +40,22 @@ general engine's ``|Δξ_i| <= tol (1 + |ξ_i|)`` for ``ξ = w/h``, with ``tol =
 (:attr:`FusedCarPendulum.tol`). Result codes as
 :data:`~lgvi_jax.newton.RESULTS`; ``newton_steps`` counts residual evaluations in the loops.
 
-**Limits.** Only :class:`~lgvi_jax.models.rigid_bodies.CarPendulum`. The loops are
-``while`` loops: forward-mode derivatives only, through the iterations (no implicit
-adjoint); for gradients (inertia fitting) use the general methods.
+**Layouts.** One trajectory and a batch want different loops: a kernel per loop value is
+cheap when each is a vector of 512 trajectories and the arithmetic vectorises, but one
+trajectory pays ~20 ns per kernel whatever it computes. The step therefore chooses by
+batching (``jax.custom_batching.custom_vmap``): alone, the Newton loop's state is packed in
+one array (:func:`_solve_packed`); under ``vmap`` (also nested, or over the model's
+parameters) each component is its own array (:func:`_solve`). Both solve the same
+equations by the same iteration (equal to a few ulps, tested).
+
+**Limits.** Only :class:`~lgvi_jax.models.rigid_bodies.CarPendulum`. No derivatives
+(``custom_vmap`` has no differentiation rule): for gradients (inertia fitting) use the
+general methods, whose Newton solves have implicit-function-theorem derivatives.
 """
 
 from __future__ import annotations
 
+import functools
 from typing import ClassVar
 
 import equinox as eqx
@@ -89,30 +98,44 @@ def _matvec(A, x):
     return tuple(_dot(row, x) for row in A)
 
 
-def _coeffs(kind: str, t2):
+def _coeffs(kind: str, t2, batch_cond: bool = False):
     """``(c_1, c_2, d)`` for ``θ² = t2``: ``F = I + c_1ŵ + c_2ŵ²`` and the exact
     variation's ``d`` (0 otherwise); series branches for ``θ < 0.1`` as in
-    :mod:`lgvi_jax.so3`. (Evaluating sin and cos by long series instead was measured 5x
-    slower batched: XLA inlines the polynomial into every kernel that uses it.)"""
+    :mod:`lgvi_jax.so3`. With ``batch_cond`` (an explicit batch ``t2``), when every angle of
+    the batch is in the series' range (the usual case at small steps), a ``cond`` skips the
+    closed forms: XLA evaluates ``sin`` and
+    ``cos`` element by element, which made the exp-map methods 2x slower batched. (Long
+    series instead of ``sin``/``cos`` were measured 5x slower: XLA inlines the polynomial
+    into every kernel that uses it.)"""
     if kind in ("lgvi", "hamel-cayley"):
         c1 = 4.0 / (4.0 + t2)
-        return c1, 0.5 * c1, 0.0
-    small = t2 < _TAYLOR_THETA_SQ
-    s1 = 1.0 + t2 * (-1.0 / 6 + t2 * (1.0 / 120 + t2 * (-1.0 / 5040 + t2 * (
-        1.0 / 362880 + t2 * (-1.0 / 39916800)))))
-    s2 = 0.5 + t2 * (-1.0 / 24 + t2 * (1.0 / 720 + t2 * (-1.0 / 40320 + t2 * (
-        1.0 / 3628800 + t2 * (-1.0 / 479001600)))))
-    tt = jnp.where(small, 1.0, t2)  # the closed forms only where they are accurate
-    t = jnp.sqrt(tt)
-    sh = jnp.sin(0.5 * t)
-    c1 = jnp.where(small, s1, jnp.sin(t) / t)
-    c2 = jnp.where(small, s2, 2.0 * sh * sh / tt)
-    if kind != "hamel-exact":
-        return c1, c2, 0.0
-    sd = 1.0 / 12 + t2 * (1.0 / 720 + t2 * (1.0 / 30240 + t2 * (
-        1.0 / 1209600 + t2 * (1.0 / 47900160))))
-    d = jnp.where(small, sd, 1.0 / tt - jnp.cos(0.5 * t) / (2.0 * t * sh))
-    return c1, c2, d
+        return c1, 0.5 * c1, jnp.zeros_like(t2)
+    exact = kind == "hamel-exact"
+
+    def series(t2):
+        s1 = 1.0 + t2 * (-1.0 / 6 + t2 * (1.0 / 120 + t2 * (-1.0 / 5040 + t2 * (
+            1.0 / 362880 + t2 * (-1.0 / 39916800)))))
+        s2 = 0.5 + t2 * (-1.0 / 24 + t2 * (1.0 / 720 + t2 * (-1.0 / 40320 + t2 * (
+            1.0 / 3628800 + t2 * (-1.0 / 479001600)))))
+        sd = 1.0 / 12 + t2 * (1.0 / 720 + t2 * (1.0 / 30240 + t2 * (
+            1.0 / 1209600 + t2 * (1.0 / 47900160)))) if exact else jnp.zeros_like(t2)
+        return s1, s2, sd
+
+    def mixed(t2):
+        small = t2 < _TAYLOR_THETA_SQ
+        s1, s2, sd = series(t2)
+        tt = jnp.where(small, 1.0, t2)  # the closed forms only where they are accurate
+        t = jnp.sqrt(tt)
+        sh = jnp.sin(0.5 * t)
+        c1 = jnp.where(small, s1, jnp.sin(t) / t)
+        c2 = jnp.where(small, s2, 2.0 * sh * sh / tt)
+        d = jnp.where(small, sd, 1.0 / tt - jnp.cos(0.5 * t) / (2.0 * t * sh)) if exact \
+            else sd
+        return c1, c2, d
+
+    if not batch_cond:  # for one trajectory the cond's kernels cost more than sin/cos
+        return mixed(t2)
+    return jax.lax.cond(jnp.all(t2 < _TAYLOR_THETA_SQ), series, mixed, t2)
 
 
 def _transpose_rotate(c1, c2, t2, w, a):
@@ -120,12 +143,12 @@ def _transpose_rotate(c1, c2, t2, w, a):
     return _comb((1.0, a), (-c1, _cross(w, a)), (c2 * _dot(w, a), w), (-c2 * t2, a))
 
 
-def _equations(kind, prm, h, R0, K, p, w):
+def _equations(kind, prm, h, R0, K, p, w, batch_cond=False):
     """The reduced step for the increment ``w``: ``(residual, u, μ_{k+1} without its
     gravity term, c_1, c_2)``."""
     m, M, rho, J = prm["m"], prm["M"], prm["rho"], prm["J"]
     t2 = _dot(w, w)
-    c1, c2, d = _coeffs(kind, t2)
+    c1, c2, d = _coeffs(kind, t2, batch_cond)
     e = _cross(w, rho)
     if kind == "lgvi":
         g, k = _comb((c1, e), (c2, _cross(w, e))), m / h  # (F − I)ρ
@@ -151,8 +174,8 @@ def _equations(kind, prm, h, R0, K, p, w):
 
 def _inverse_jacobian(f, w):
     """The inverse of ``∂f/∂w`` (three forward-mode tangents), by cofactors, row-major."""
-    cols = [jax.jvp(f, (w,), (tuple(jnp.asarray(float(i == j), w[0].dtype)
-                                    for i in range(3)),))[1] for j in range(3)]
+    cols = [jax.jvp(f, (w,), (tuple(jnp.full_like(w[i], float(i == j)) for i in range(3)),))[1]
+            for j in range(3)]
     (j00, j10, j20), (j01, j11, j21), (j02, j12, j22) = cols
     k00 = j11 * j22 - j12 * j21
     k01 = j12 * j20 - j10 * j22
@@ -168,7 +191,9 @@ _RUNNING, _CONVERGED, _NEWTON, _NONFINITE = 0, 1, 2, 3
 
 
 def _solve(f, h, tol, max_steps, dtype):
-    """``w`` with ``f(w) = 0`` (module docstring): ``(w, iterations, status)``."""
+    """``w`` with ``f(w) = 0`` (module docstring): ``(w, iterations, status)``, for one
+    trajectory or an explicit batch (every quantity an array of the batch's shape, each
+    trajectory's iteration masked once it stops, the loops running while any is active)."""
 
     def update(Ji, w):
         fw = f(w)
@@ -181,33 +206,145 @@ def _solve(f, h, tol, max_steps, dtype):
         return new, size
 
     zero = tuple(jnp.zeros((), dtype) for _ in range(3))
-    Ji0 = _inverse_jacobian(f, zero)
+    Ji0 = _inverse_jacobian(f, zero)  # at the constant 0: XLA folds most of it
+    shape = jnp.shape(f(zero)[0])
+
+    def masked(active, new, old):
+        return jax.tree.map(lambda a, b: jnp.where(active, a, b), new, old)
 
     def chord(carry):
-        w, it, prev, _ = carry
+        w, it, prev, status = carry
+        active = (status == _RUNNING) & (it < max_steps)
         new, size = update(Ji0, w)
         finite = jnp.isfinite(size)
-        status = jnp.where(size <= 1.0, _CONVERGED,
-                           jnp.where(finite & (size <= 0.5 * prev), _RUNNING, _NEWTON))
-        status = status.astype(jnp.int32)
-        w = tuple(jnp.where(finite, a, b) for a, b in zip(new, w, strict=True))
-        return w, it + 1, size, status
+        st = jnp.where(size <= 1.0, _CONVERGED,
+                       jnp.where(finite & (size <= 0.5 * prev), _RUNNING, _NEWTON))
+        new = tuple(jnp.where(finite, a, b) for a, b in zip(new, w, strict=True))
+        return masked(active, (new, it + 1, size, st.astype(jnp.int32)), carry)
 
     def newton(carry):
-        w, it, _, _ = carry
+        w, it, _, status = carry
+        active = (status == _NEWTON) & (it < max_steps)
         new, size = update(_inverse_jacobian(f, w), w)
-        status = jnp.where(size <= 1.0, _CONVERGED,
-                           jnp.where(jnp.isfinite(size), _NEWTON, _NONFINITE))
-        return new, it + 1, size, status.astype(jnp.int32)
+        st = jnp.where(size <= 1.0, _CONVERGED,
+                       jnp.where(jnp.isfinite(size), _NEWTON, _NONFINITE))
+        return masked(active, (new, it + 1, size, st.astype(jnp.int32)), carry)
 
     def going(want):
-        return lambda c: (c[3] == want) & (c[1] < max_steps)
+        return lambda c: jnp.any((c[3] == want) & (c[1] < max_steps))
 
-    init = (zero, jnp.asarray(0, jnp.int32), jnp.asarray(jnp.inf, dtype),
-            jnp.asarray(_RUNNING, jnp.int32))
+    init = (tuple(jnp.zeros(shape, dtype) for _ in range(3)), jnp.zeros(shape, jnp.int32),
+            jnp.full(shape, jnp.inf, dtype), jnp.full(shape, _RUNNING, jnp.int32))
     carry = jax.lax.while_loop(going(_RUNNING), chord, init)
     w, it, _, status = jax.lax.while_loop(going(_NEWTON), newton, carry)
     return w, it, status
+
+
+def _solve_packed(f, h, tol, max_steps, dtype):
+    """:func:`_solve` with the loop state packed in one array ``(w, size, status,
+    iterations)`` and the chord inverse in another: for one trajectory, where XLA makes a
+    kernel of every separate loop value and the kernels' count, not their arithmetic, sets
+    the speed (measured 2.8x faster than :func:`_solve` for one trajectory, 4-30x slower
+    under ``vmap``, whose strided columns do not vectorise)."""
+    zero = tuple(jnp.zeros((), dtype) for _ in range(3))
+    Ji0 = jnp.stack(_inverse_jacobian(f, zero))
+
+    def update(Ji, c):
+        w = (c[0], c[1], c[2])
+        fw = f(w)
+        d = tuple(-(Ji[3 * i] * fw[0] + Ji[3 * i + 1] * fw[1] + Ji[3 * i + 2] * fw[2])
+                  for i in range(3))
+        new = tuple(wi + di for wi, di in zip(w, d, strict=True))
+        size = jnp.maximum(jnp.maximum(jnp.abs(d[0]) / (h + jnp.abs(new[0])),
+                                       jnp.abs(d[1]) / (h + jnp.abs(new[1]))),
+                           jnp.abs(d[2]) / (h + jnp.abs(new[2]))) / tol
+        return w, new, size
+
+    def chord(c):
+        w, new, size = update(Ji0, c)
+        finite = jnp.isfinite(size)
+        status = jnp.where(size <= 1.0, _CONVERGED,
+                           jnp.where(finite & (size <= 0.5 * c[3]), _RUNNING, _NEWTON))
+        w = tuple(jnp.where(finite, a, b) for a, b in zip(new, w, strict=True))
+        return jnp.stack([*w, size, status.astype(dtype), c[5] + 1])
+
+    def newton(c):
+        _, new, size = update(jnp.stack(_inverse_jacobian(f, (c[0], c[1], c[2]))), c)
+        status = jnp.where(size <= 1.0, _CONVERGED,
+                           jnp.where(jnp.isfinite(size), _NEWTON, _NONFINITE))
+        return jnp.stack([*new, size, status.astype(dtype), c[5] + 1])
+
+    def going(want):
+        return lambda c: (c[4] == want) & (c[5] < max_steps)
+
+    init = jnp.array([0.0, 0.0, 0.0, jnp.inf, _RUNNING, 0.0], dtype)
+    c = jax.lax.while_loop(going(_RUNNING), chord, init)
+    c = jax.lax.while_loop(going(_NEWTON), newton, c)
+    return (c[0], c[1], c[2]), c[5].astype(jnp.int32), c[4].astype(jnp.int32)
+
+
+def _step_arrays(kind, tol, max_steps, layout, R, mu, q, p, m, M, g, rho_c, J, h):
+    """One step on the state's arrays: ``(R1, mu1, q1, iterations, status, residual)``.
+    ``layout``: ``"packed"`` (one trajectory, :func:`_solve_packed`), ``"soa"`` (one
+    trajectory to be ``vmap``ped, :func:`_solve`) or ``"batch"`` (an explicit batch on the
+    leading axis, :func:`_solve`, with the batch-wide ``cond`` of :func:`_coeffs`)."""
+    cond = layout == "batch"
+    dtype = R.dtype
+    R0 = tuple(tuple(R[..., i, j] for j in range(3)) for i in range(3))
+    mu0 = tuple(mu[..., i] for i in range(3))
+    p0 = tuple(p[..., i] for i in range(2))
+    prm = {"m": m, "M": M, "rho": tuple(rho_c[..., i] for i in range(3)),
+           "J": tuple(tuple(J[..., i, j] for j in range(3)) for i in range(3))}
+    hg = 0.5 * h * m * g
+    K = _comb((1.0, mu0), (hg, _cross(prm["rho"], R0[2])))
+
+    def residual(w):
+        return _equations(kind, prm, h, R0, K, p0, w, cond)[0]
+
+    solve = _solve_packed if layout == "packed" else _solve
+    w, its, status = solve(residual, h, tol, max_steps, dtype)
+    res, u, nxt, c1, c2 = _equations(kind, prm, h, R0, K, p0, w, cond)
+    # R_{k+1} = R_k F,  F = I + c_1 ŵ + c_2 (w wᵀ − θ² I)
+    dg = 1.0 - c2 * _dot(w, w)
+    W = ((0.0, -w[2], w[1]), (w[2], 0.0, -w[0]), (-w[1], w[0], 0.0))
+    F = tuple(tuple((dg if i == j else 0.0) + c2 * w[i] * w[j] + c1 * W[i][j]
+                    for j in range(3)) for i in range(3))
+    R1 = tuple(tuple(_dot(R0[i], tuple(F[k][j] for k in range(3))) for j in range(3))
+               for i in range(3))
+    mu1 = _comb((1.0, nxt), (hg, _cross(prm["rho"], R1[2])))
+    residual_norm = jnp.maximum(jnp.maximum(jnp.abs(res[0]), jnp.abs(res[1])),
+                                jnp.abs(res[2]))
+    return (jnp.stack([jnp.stack(row, -1) for row in R1], -2), jnp.stack(mu1, -1),
+            q + h * jnp.stack(u, -1), its, status, residual_norm)
+
+
+@functools.cache
+def _stepper(kind: str, tol: float, max_steps: int):
+    """:func:`_step_arrays` with the loop layout chosen by batching (``custom_vmap``): the
+    packed loop for one trajectory, the structure-of-arrays loop under ``vmap``."""
+    one = functools.partial(_step_arrays, kind, tol, max_steps, "packed")
+    # The Cayley methods: JAX's batching of the per-trajectory loop (measured 25 % faster
+    # than the explicit batch); the exp methods: the explicit batch, whose cond skips sin
+    # and cos (measured 1.6x faster).
+    explicit = kind in ("hamel", "hamel-exact")
+    many = functools.partial(_step_arrays, kind, tol, max_steps,
+                             "batch" if explicit else "soa")
+    fn = jax.custom_batching.custom_vmap(one)
+
+    @fn.def_vmap
+    def _batched(axis_size, in_batched, *args):
+        # Batched arguments carry the batch on axis 0; the step is elementwise in the
+        # trajectories, so it runs on the whole batch at once (NumPy broadcasting), and
+        # every output is broadcast to the batch.
+        if explicit:
+            out = many(*args)
+        else:
+            out = jax.vmap(many, in_axes=tuple(0 if b else None for b in in_batched))(*args)
+        shapes = ((3, 3), (3,), (2,), (), (), ())
+        return (tuple(jnp.broadcast_to(o, (axis_size, *sh)) for o, sh in
+                      zip(out, shapes, strict=True)), (True,) * len(out))
+
+    return fn
 
 
 class FusedCarPendulum(AbstractIntegrator):
@@ -261,41 +398,14 @@ class FusedCarPendulum(AbstractIntegrator):
 
     def step(self, model, state: RigidState, dt):
         dtype = state.R.dtype
-        h = jnp.asarray(dt, dtype)
-        R0 = tuple(tuple(state.R[..., i, j] for j in range(3)) for i in range(3))
-        mu0 = tuple(state.mu[..., i] for i in range(3))
-        p0 = tuple(state.p[..., i] for i in range(2))
-        J = jnp.asarray(model.J, dtype)
-        prm = {"m": model.m, "M": model.M,
-               "rho": tuple(model.rho_c[..., i] for i in range(3)),
-               "J": tuple(tuple(J[..., i, j] for j in range(3)) for i in range(3))}
-        hg = 0.5 * h * model.m * model.g
-        K = _comb((1.0, mu0), (hg, _cross(prm["rho"], R0[2])))
-
-        def residual(w):
-            return _equations(self.method, prm, h, R0, K, p0, w)[0]
-
-        w, its, status = _solve(residual, h, self.tol, self.max_steps, dtype)
-        res, u, nxt, c1, c2 = _equations(self.method, prm, h, R0, K, p0, w)
-        # R_{k+1} = R_k F,  F = I + c_1 ŵ + c_2 (w wᵀ − θ² I)
-        dg = 1.0 - c2 * _dot(w, w)
-        W = ((0.0, -w[2], w[1]), (w[2], 0.0, -w[0]), (-w[1], w[0], 0.0))
-        F = tuple(tuple((dg if i == j else 0.0) + c2 * w[i] * w[j] + c1 * W[i][j]
-                        for j in range(3)) for i in range(3))
-        R1 = tuple(tuple(_dot(R0[i], tuple(F[k][j] for k in range(3))) for j in range(3))
-                   for i in range(3))
-        mu1 = _comb((1.0, nxt), (hg, _cross(prm["rho"], R1[2])))
-        new_state = RigidState(
-            R=jnp.stack([jnp.stack(row, -1) for row in R1], -2),
-            mu=jnp.stack(mu1, -1),
-            q=state.q + h * jnp.stack(u, -1),
-            p=state.p,
-        )
+        R1, mu1, q1, its, status, residual_norm = _stepper(
+            self.method, self.tol, self.max_steps)(
+            state.R, state.mu, state.q, state.p, *(jnp.asarray(x, dtype) for x in (
+                model.m, model.M, model.g, model.rho_c, model.J, dt)))
+        new_state = RigidState(R=R1, mu=mu1, q=q1, p=state.p)
         result = jnp.where(status == _CONVERGED, RESULTS.successful,
                            jnp.where(status == _NONFINITE, RESULTS.nonfinite,
                                      RESULTS.max_steps_reached)).astype(jnp.int32)
-        residual_norm = jnp.maximum(jnp.maximum(jnp.abs(res[0]), jnp.abs(res[1])),
-                                    jnp.abs(res[2]))
         return new_state, StepInfo(newton_steps=its, result=result, residual=residual_norm)
 
 
