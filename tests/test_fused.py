@@ -52,7 +52,8 @@ def test_one_step_equals_the_general_engine(car, kind):
     assert float(jnp.max(_rotation_angle(states.R, a.R))) > 0.1
 
 
-@pytest.mark.parametrize("kind", list(fused.KINDS))
+# The one-step test covers every method; over a trajectory, one Cayley and one exp method.
+@pytest.mark.parametrize("kind", ["lgvi", "hamel-exact"])
 def test_trajectory_equals_the_general_engine(car, kind):
     model, s0 = car
     a, ca = lj.final_state(model, fused.FusedCarPendulum(kind), s0, 5e-3, 2000)
@@ -64,12 +65,12 @@ def test_trajectory_equals_the_general_engine(car, kind):
 
 
 def test_conservation_over_a_long_run(car):
-    """lgvi, hamel-cayley and hamel-exact conserve the vertical angular momentum to
-    round-off (discrete Noether), keep the energy error bounded, and the cart momentum
-    exact."""
+    """lgvi and hamel-exact (exactly variational, one Cayley and one exp method) conserve
+    the vertical angular momentum to round-off (discrete Noether), keep the energy error
+    bounded, and the cart momentum exact."""
     model, s0 = car
     inv0 = model.invariants(s0)
-    for kind in ("lgvi", "hamel-cayley", "hamel-exact"):
+    for kind in ("lgvi", "hamel-exact"):
         traj = lj.simulate(model, fused.FusedCarPendulum(kind), s0, 0.01, 4000,
                            save_every=50)
         assert bool(traj.ok)
