@@ -52,8 +52,9 @@ def test_one_step_equals_the_general_engine(car, kind):
     assert float(jnp.max(_rotation_angle(states.R, a.R))) > 0.1
 
 
-# The one-step test covers every method; over a trajectory, one Cayley and one exp method.
-@pytest.mark.parametrize("kind", ["lgvi", "hamel-exact"])
+# The one-step test covers every method; over a trajectory, lgvi (the exp-map path is
+# covered over 4000 steps by the conservation test and the nested-vmap test).
+@pytest.mark.parametrize("kind", ["lgvi"])
 def test_trajectory_equals_the_general_engine(car, kind):
     model, s0 = car
     a, ca = lj.final_state(model, fused.FusedCarPendulum(kind), s0, 5e-3, 2000)
