@@ -45,7 +45,8 @@ cheap when each is a vector of 512 trajectories and the arithmetic vectorises, b
 trajectory pays ~20 ns per kernel whatever it computes. The step therefore chooses by
 batching (``jax.custom_batching.custom_vmap``): alone, the Newton loop's state is packed in
 one array (:func:`_solve_packed`); under ``vmap`` (also nested, or over the model's
-parameters) each component is its own array (:func:`_solve`). Both solve the same
+parameters) each component is its own array (:func:`_solve`): batched by JAX for
+``lgvi``, as an explicit batch for the Hamel methods (measured faster for each). Both solve the same
 equations by the same iteration (equal to a few ulps, tested).
 
 **Limits.** Only :class:`~lgvi_jax.models.rigid_bodies.CarPendulum`. No derivatives
@@ -323,10 +324,10 @@ def _stepper(kind: str, tol: float, max_steps: int):
     """:func:`_step_arrays` with the loop layout chosen by batching (``custom_vmap``): the
     packed loop for one trajectory, the structure-of-arrays loop under ``vmap``."""
     one = functools.partial(_step_arrays, kind, tol, max_steps, "packed")
-    # The Cayley methods: JAX's batching of the per-trajectory loop (measured 25 % faster
-    # than the explicit batch); the exp methods: the explicit batch, whose cond skips sin
-    # and cos (measured 1.6x faster).
-    explicit = kind in ("hamel", "hamel-exact")
+    # lgvi: JAX's batching of the per-trajectory loop (measured 20-25 % faster than the
+    # explicit batch); the Hamel methods: the explicit batch (hamel-cayley 15 % faster; for
+    # the exp maps its cond skips sin and cos: 1.6x faster).
+    explicit = kind != "lgvi"
     many = functools.partial(_step_arrays, kind, tol, max_steps,
                              "batch" if explicit else "soa")
     fn = jax.custom_batching.custom_vmap(one)
