@@ -138,9 +138,9 @@ SOLVERS = pytest.mark.parametrize("solver", [fused._solve, fused._solve_packed],
 
 
 @SOLVERS
-def test_solver_falls_back_to_newton_when_the_chord_stalls(solver):
+def test_solver_falls_back_to_broyden_when_the_chord_stalls(solver):
     # f = e^w − 2 componentwise: the chord from J(0) = I has the map's slope 1 − e^w = −1
-    # at the root and oscillates; Newton from the last iterate converges to log 2.
+    # at the root and oscillates; Broyden from the last iterate converges to log 2.
     w, its, status = solver(lambda w: tuple(jnp.exp(x) - 2.0 for x in w), 1.0, 1e-12, 40,
                             jnp.float64)
     assert int(status) == fused._CONVERGED
