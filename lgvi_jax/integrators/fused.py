@@ -50,7 +50,8 @@ trajectory pays ~20 ns per kernel whatever it computes. The step therefore choos
 batching (``jax.custom_batching.custom_vmap``): alone, the Newton loop's state is packed in
 one array (:func:`_solve_packed`); under ``vmap`` (also nested, or over the model's
 parameters) each component is its own array (:func:`_solve`): batched by JAX for
-``lgvi``, as an explicit batch for the Hamel methods (measured faster for each). Both solve the same
+``lgvi``, as an explicit batch for the Hamel methods (measured faster for each), with the
+residual materialised once per iteration (:func:`_materialize`). Both solve the same
 equations by the same iteration (equal to a few ulps, tested).
 
 **Limits.** Only :class:`~lgvi_jax.models.rigid_bodies.CarPendulum`. Large steps: on
