@@ -82,8 +82,12 @@ def test_large_batches_run_in_blocks_with_the_same_results(car, monkeypatch):
     assert set(blocks) == set(one_vmap)
     for key in one_vmap:
         assert blocks[key].shape == (8,), key
-        # The same vector code on the same inputs: identical to round-off (measured: equal).
-        np.testing.assert_allclose(blocks[key], one_vmap[key], rtol=1e-12, atol=1e-15,
+        # The same equations on the same inputs, but vector code for another block size
+        # may round differently (SIMD body against remainder loop): measured equal on one
+        # machine, up to 3e-14 apart on another (AVX2) after 200 steps, in the energy error,
+        # a difference of O(1) energies. So round-off-level quantities (the drifts, ~1e-14)
+        # agree only absolutely, to a few hundred ulps of O(1).
+        np.testing.assert_allclose(blocks[key], one_vmap[key], rtol=1e-12, atol=2e-13,
                                    err_msg=key)
     # The trajectories really differ, so a permutation or a repeated block would show.
     assert len(np.unique(np.round(one_vmap["energy_error_max"], 15))) == 8

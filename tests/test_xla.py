@@ -1,0 +1,97 @@
+"""The XLA setting applied at import (lgvi_jax._xla): it is in effect in a fresh process,
+compiles the rollouts' loops whole, gives the same trajectories as the opt-out to rounding,
+and says so when it comes too late. Each case runs in a child process, since the setting
+only acts before JAX's backend starts."""
+
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+
+import lgvi_jax  # noqa: F401  (the setting is applied by this import)
+from lgvi_jax import _xla
+
+_ROLLOUT = """
+import json, sys
+import jax, numpy as np
+import lgvi_jax as lj
+model = lj.CarPendulum()
+out = {}
+for name in ("lgvi", "hamel-exact"):
+    method = lj.FusedCarPendulum(name)
+    run = jax.jit(lambda s: lj.final_state(model, method, s, 5e-3, 2000))
+    compiled = run.lower(model.default_state()).compile()
+    state, code = compiled(model.default_state())
+    out[name] = {"R": np.asarray(state.R).tolist(), "mu": np.asarray(state.mu).tolist(),
+                 "q": np.asarray(state.q).tolist(), "code": int(code),
+                 "small_calls": compiled.as_text().count("xla_cpu_small_call")}
+out["flags"] = __import__("os").environ.get("XLA_FLAGS", "")
+print(json.dumps(out))
+"""
+
+
+def _child(code: str, **env) -> subprocess.CompletedProcess:
+    full = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", _xla.OPT_OUT)}
+    full.update(env)
+    return subprocess.run([sys.executable, "-c", code], env=full, capture_output=True,
+                          text=True, timeout=300, check=False)
+
+
+def test_setting_is_applied_at_import_and_changes_only_rounding():
+    tuned, plain = (_child(_ROLLOUT, **env) for env in ({}, {_xla.OPT_OUT: "0"}))
+    assert tuned.returncode == 0 and plain.returncode == 0, tuned.stderr + plain.stderr
+    tuned, plain = json.loads(tuned.stdout), json.loads(plain.stdout)
+    assert _xla.flag() in tuned["flags"]
+    assert "xla_backend_extra_options" not in plain["flags"]
+    for name in ("lgvi", "hamel-exact"):
+        a, b = tuned[name], plain[name]
+        assert a["code"] == b["code"] == 0
+        # The tuned program compiles the rollout's loops (the step loop and both Newton
+        # loops) as single functions; by default XLA does so only for the innermost loop.
+        assert a["small_calls"] > b["small_calls"] >= 0
+        # 2000 steps of the same equations: the two compilations may round differently
+        # (instruction selection), and the chaotic pendulum amplifies rounding differences
+        # by ~e^(λt) over t = 10; 1e-9 is far above the ulp level (1e-16) yet far below a
+        # wrong step (the Newton tolerance change alone moves the state by ~1e-12).
+        for key in ("R", "mu", "q"):
+            assert max(abs(x - y) for x, y in zip(
+                _flat(a[key]), _flat(b[key]), strict=True)) < 1e-9, (name, key)
+
+
+def _flat(x):
+    return [z for y in x for z in (_flat(y) if isinstance(y, list) else [y])]
+
+
+def test_user_options_are_kept():
+    code = "import os, lgvi_jax; print(os.environ['XLA_FLAGS'])"
+    mine = "--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=4096"
+    out = _child(code, XLA_FLAGS=mine)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == mine
+    other = "--xla_force_host_platform_device_count=2"
+    out = _child(code, XLA_FLAGS=other)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == [other, _xla.flag()]
+
+
+def test_too_late_warns_and_says_how_to_fix():
+    code = ("import warnings, jax, jax.numpy as jnp\n"
+            "jnp.zeros(1).block_until_ready()\n"
+            "with warnings.catch_warnings(record=True) as w:\n"
+            "    warnings.simplefilter('always')\n"
+            "    import lgvi_jax\n"
+            "print([(x.category.__name__, str(x.message)) for x in w])\n")
+    out = _child(code)
+    assert out.returncode == 0, out.stderr
+    assert "XlaSettingWarning" in out.stdout and "before the first JAX computation" in out.stdout
+    silenced = _child(code, **{_xla.OPT_OUT: "0"})
+    assert silenced.returncode == 0 and "XlaSettingWarning" not in silenced.stdout
+
+
+@pytest.mark.parametrize("value", ["0", " 0 "])
+def test_opt_out(value):
+    out = _child("import os, lgvi_jax; print(os.environ.get('XLA_FLAGS', ''))",
+                 **{_xla.OPT_OUT: value})
+    assert out.returncode == 0 and "xla_backend_extra_options" not in out.stdout
