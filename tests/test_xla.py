@@ -51,13 +51,13 @@ def test_setting_is_applied_at_import_and_changes_only_rounding():
         # The tuned program compiles the rollout's loops (the step loop and both Newton
         # loops) as single functions; by default XLA does so only for the innermost loop.
         assert a["small_calls"] > b["small_calls"] >= 0
-        # 2000 steps of the same equations: the two compilations may round differently
-        # (instruction selection), and the chaotic pendulum amplifies rounding differences
-        # by ~e^(λt) over t = 10; 1e-9 is far above the ulp level (1e-16) yet far below a
-        # wrong step (the Newton tolerance change alone moves the state by ~1e-12).
+        # 2000 steps of the same equations: the two compilations round differently
+        # (instruction selection, contraction to FMA), and the pendulum's motion amplifies
+        # rounding over t = 10 (measured: 6e-12 apart for lgvi, 4e-12 for hamel-exact);
+        # 1e-10 leaves room for other CPUs, far below what a wrong step would give.
         for key in ("R", "mu", "q"):
             assert max(abs(x - y) for x, y in zip(
-                _flat(a[key]), _flat(b[key]), strict=True)) < 1e-9, (name, key)
+                _flat(a[key]), _flat(b[key]), strict=True)) < 1e-10, (name, key)
 
 
 def _flat(x):
