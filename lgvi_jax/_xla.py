@@ -10,11 +10,12 @@ instead compiles a ``while`` loop whose body accesses fewer than
 ``xla_cpu_small_while_loop_byte_threshold`` bytes into a single function (one kernel, no
 dispatch inside); the default threshold, 1 kB, catches only the innermost Newton loop of
 one trajectory. Raised to :data:`SMALL_LOOP_BYTES`, it catches whole rollouts: measured on
-the 2-core CPU (``lgvi-jax bench``, README "Throughput") the fused car-pendulum steps run
+the 2-core CPU (``lgvi-jax bench``, README "Benchmark") the fused car-pendulum steps run
 2.5-3x faster for one trajectory and 1.2-1.4x faster in a batch of 1024, with the same
 results to rounding (the test suite runs with it). Loops that contain what the single-
-function emitter cannot compile (custom calls such as LAPACK solves, sorts, scatters) keep
-the thunk runtime.
+function emitter cannot compile (custom calls such as LAPACK solves, sorts, scatters, and
+the YNN library's fusions that XLA makes of small matrix products, as in the general
+engine's steps) keep the thunk runtime.
 
 The option only takes effect if set before JAX starts its CPU backend, so it is added to
 ``XLA_FLAGS`` here, at import, when
