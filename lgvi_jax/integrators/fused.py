@@ -31,8 +31,8 @@ throughput (``lgvi-jax bench``, README).
 In every method ``p_{k+1} = p_k`` exactly and ``q_{k+1} = q_k + hu``.
 
 **Solver.** Newton's method on ``w`` from ``w = 0``, first as a chord iteration with the
-Jacobian at ``w = 0`` (forward-mode autodiff, three tangents; XLA folds the evaluation at
-the constant zero, so it costs little), inverted by cofactors. When an update is not below
+Jacobian at ``w = 0`` (forward-mode autodiff, three tangents, once per step; XLA
+simplifies the evaluation at the constant zero), inverted by cofactors. When an update is not below
 a quarter of the previous one (:data:`_CONTRACTION`) or stops being finite, a second loop
 continues from the last finite iterate by Broyden's method (secant updates of that
 inverse, :func:`_broyden`); under ``vmap`` it costs nothing unless some trajectory needs
@@ -188,13 +188,23 @@ def _equations(kind, prm, h, R0, K, p, w, coeffs=None):
     return res, u, nxt, c1, c2
 
 
-def _inverse_jacobian(f, w):
+#: :func:`_equations` as a traced-once function: the chord and Broyden loops, the final
+#: outputs (and, with the same argument shapes, later programs in the process) reuse one
+#: trace and one lowering instead of tracing the scalar arithmetic each time; XLA inlines
+#: the calls, so the compiled program is the same.
+_equations_once = jax.jit(_equations, static_argnames=("kind", "coeffs"))
+
+
+def _inverse_jacobian(f, w, one=None):
     """The inverse of ``∂f/∂w`` (three forward-mode tangents, ``vmap``ped so that ``f`` is
-    traced once), by cofactors, row-major."""
+    traced once), by cofactors, row-major. ``one``: a runtime one, to :func:`_materialize`
+    the Jacobian's entries."""
     eye = tuple(jnp.asarray([float(i == j) for j in range(3)], w[i].dtype) for i in range(3))
     rows = jax.vmap(lambda t: jax.jvp(f, (w,), (t,))[1])(eye)  # rows[i][j] = ∂f_i/∂w_j
-    (j00, j01, j02), (j10, j11, j12), (j20, j21, j22) = (tuple(r[j] for j in range(3))
-                                                          for r in rows)
+    if one is not None:
+        rows = _materialize(rows, one)
+    jac = tuple(r[j] for r in rows for j in range(3))
+    (j00, j01, j02), (j10, j11, j12), (j20, j21, j22) = jac[:3], jac[3:6], jac[6:]
     k00 = j11 * j22 - j12 * j21
     k01 = j12 * j20 - j10 * j22
     k02 = j10 * j21 - j11 * j20
@@ -211,8 +221,16 @@ def _materialize(xs, one):
     recomputed inside every kernel that reads it. Under ``vmap`` the Newton update read the
     residual in six kernels (three components of the update, three of its size), so the
     residual was evaluated six times per iteration; materialised, the batched steps are
-    1.5-1.6x faster (measured). For one trajectory the opposite holds: a kernel costs more
-    than the arithmetic it saves (measured 2x slower), so :func:`_solve_packed` does not."""
+    1.5-1.6x faster (measured). The same holds for the chord matrix: its nine entries each
+    recomputed the whole Jacobian (three forward-mode tangents of the residual), and each
+    Broyden entry the products ``Hy`` and ``sᵀH``. Materialising the residual, the
+    Jacobian's rows and Broyden's products cut the optimised batched program from 9290 to
+    6350 HLO lines (one trajectory's: 13299 to ~8000) and, measured alternating with the
+    unmaterialised version (fresh processes, 2 devices, hamel-exact): compilation 0.5-1.3 s
+    faster batched and ~1 s alone (1.6 instead of 2.6-2.9 s), runs 6-15 % faster batched and
+    10-15 % alone. (For one trajectory, before the whole rollout was compiled as one
+    function (:mod:`lgvi_jax._xla`), materialising the residual was 2x slower: a kernel cost
+    more than the arithmetic it saved.)"""
     return tuple(x / one for x in xs)
 
 
@@ -237,16 +255,20 @@ def _newton_update(H, w, fw, h, tol):
     return new, size
 
 
-def _broyden(H, s, y):
+def _broyden(H, s, y, one):
     """Broyden's ("good") update of an inverse Jacobian ``H`` (row-major) for the secant
     pair ``s = Δw``, ``y = Δf``: ``H + (s − Hy)(sᵀH)/(sᵀHy)`` (Sherman–Morrison form; Dennis
     & Schnabel, *Numerical Methods for Unconstrained Optimization*, §8.1). ``H`` unchanged
-    where ``sᵀHy`` is 0 (``s = 0`` at the first iterate) or not finite."""
-    Hy = tuple(H[3 * i] * y[0] + H[3 * i + 1] * y[1] + H[3 * i + 2] * y[2] for i in range(3))
-    sH = tuple(s[0] * H[j] + s[1] * H[3 + j] + s[2] * H[6 + j] for j in range(3))
+    where ``sᵀHy`` is 0 (``s = 0`` at the first iterate) or not finite. ``Hy``, ``sᵀH`` and
+    the scale, each read by several entries, are materialised (:func:`_materialize`, with
+    the runtime one ``one``)."""
+    Hy = _materialize(tuple(H[3 * i] * y[0] + H[3 * i + 1] * y[1] + H[3 * i + 2] * y[2]
+                            for i in range(3)), one)
+    sH = _materialize(tuple(s[0] * H[j] + s[1] * H[3 + j] + s[2] * H[6 + j]
+                            for j in range(3)), one)
     den = _dot(s, Hy)
     ok = (den != 0) & jnp.isfinite(den)
-    inv = jnp.where(ok, 1.0 / jnp.where(ok, den, 1.0), 0.0)
+    inv = _materialize((jnp.where(ok, 1.0 / jnp.where(ok, den, 1.0), 0.0),), one)[0]
     return tuple(H[3 * i + j] + (s[i] - Hy[i]) * (sH[j] * inv)
                  for i in range(3) for j in range(3))
 
@@ -273,7 +295,7 @@ def _solve(f, h, tol, max_steps, dtype, f0=None):
     ``f``)."""
     one = h / h
     zero = tuple(jnp.zeros((), dtype) for _ in range(3))
-    Ji0 = _inverse_jacobian(f if f0 is None else f0, zero)  # at the constant 0: XLA folds
+    Ji0 = _inverse_jacobian(f if f0 is None else f0, zero, one)
     shape = jnp.shape(f(zero)[0])
 
     def masked(active, new, old):
@@ -292,7 +314,7 @@ def _solve(f, h, tol, max_steps, dtype, f0=None):
         active = (status == _NEWTON) & (it < max_steps)
         fw = _materialize(f(w), one)
         H = _broyden(H, tuple(a - b for a, b in zip(w, wp, strict=True)),
-                     tuple(a - b for a, b in zip(fw, fp, strict=True)))
+                     tuple(a - b for a, b in zip(fw, fp, strict=True)), one)
         new, size = _newton_update(H, w, fw, h, tol)
         st = _status(size, None, chord=False).astype(jnp.int32)
         return masked(active, ((new, it + 1, size, st), (w, fw, H)), carry)
@@ -325,20 +347,21 @@ def _solve_packed(f, h, tol, max_steps, dtype, f0=None):
     every separate loop value and the kernels' count, not their arithmetic, sets the speed
     (measured 2.8x faster than :func:`_solve` for one trajectory, 4-30x slower under
     ``vmap``, whose strided columns do not vectorise)."""
+    one = h / h
     zero = tuple(jnp.zeros((), dtype) for _ in range(3))
-    Ji0 = _inverse_jacobian(f if f0 is None else f0, zero)
+    Ji0 = _inverse_jacobian(f if f0 is None else f0, zero, one)
 
     def chord(c):
         w = (c[0], c[1], c[2])
-        new, size = _newton_update(Ji0, w, f(w), h, tol)
+        new, size = _newton_update(Ji0, w, _materialize(f(w), one), h, tol)
         w = tuple(jnp.where(jnp.isfinite(size), a, b) for a, b in zip(new, w, strict=True))
         return jnp.stack([*w, size, _status(size, c[3], chord=True).astype(dtype), c[5] + 1])
 
     def broyden(c):
         w, wp, fp, H = (c[0], c[1], c[2]), (c[6], c[7], c[8]), (c[9], c[10], c[11]), c[12:]
-        fw = f(w)
+        fw = _materialize(f(w), one)
         H = _broyden(H, tuple(a - b for a, b in zip(w, wp, strict=True)),
-                     tuple(a - b for a, b in zip(fw, fp, strict=True)))
+                     tuple(a - b for a, b in zip(fw, fp, strict=True)), one)
         new, size = _newton_update(H, w, fw, h, tol)
         return jnp.stack([*new, size, _status(size, None, chord=False).astype(dtype),
                           c[5] + 1, *w, *fw, *H])
@@ -376,10 +399,10 @@ def _step_arrays(kind, tol, max_steps, layout, R, mu, q, p, m, M, g, rho_c, J, h
         # step; measured 12 % faster for lgvi inside).
         def residual(w, coeffs=None):
             prm_, R0_, K_, p0_ = unpack()
-            return _equations(kind, prm_, h, R0_, K_, p0_, w, coeffs)[0]
+            return _equations_once(kind, prm_, h, R0_, K_, p0_, w, coeffs)[0]
     else:
         def residual(w, coeffs=None):
-            return _equations(kind, prm, h, R0, K, p0, w, coeffs)[0]
+            return _equations_once(kind, prm, h, R0, K, p0, w, coeffs)[0]
 
     solve = _solve_packed if layout == "packed" else _solve
     # The chord matrix ∂f/∂w at w = 0 with the coefficients of F held at θ = 0: exact,
@@ -388,7 +411,7 @@ def _step_arrays(kind, tol, max_steps, layout, R, mu, q, p, m, M, g, rho_c, J, h
     # less tracing for each program (one trajectory, batch; hamel-exact, measured).
     w, its, status = solve(residual, h, tol, max_steps, dtype,
                            functools.partial(residual, coeffs=_zero_coeffs(kind)))
-    res, u, nxt, c1, c2 = _equations(kind, prm, h, R0, K, p0, w)
+    res, u, nxt, c1, c2 = _equations_once(kind, prm, h, R0, K, p0, w)
     # R_{k+1} = R_k F,  F = I + c_1 ŵ + c_2 (w wᵀ − θ² I)
     dg = 1.0 - c2 * _dot(w, w)
     W = ((0.0, -w[2], w[1]), (w[2], 0.0, -w[0]), (-w[1], w[0], 0.0))
