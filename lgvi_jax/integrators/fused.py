@@ -31,8 +31,8 @@ throughput (``lgvi-jax bench``, README).
 In every method ``p_{k+1} = p_k`` exactly and ``q_{k+1} = q_k + hu``.
 
 **Solver.** Newton's method on ``w`` from ``w = 0``, first as a chord iteration with the
-Jacobian at ``w = 0`` (forward-mode autodiff, three tangents, once per step; XLA
-simplifies the evaluation at the constant zero), inverted by cofactors. When an update is not below
+Jacobian at ``w = 0`` (in closed form, :func:`_chord_jacobian`, once per step), inverted
+by cofactors. When an update is not below
 a quarter of the previous one (:data:`_CONTRACTION`) or stops being finite, a second loop
 continues from the last finite iterate by Broyden's method (secant updates of that
 inverse, :func:`_broyden`); under ``vmap`` it costs nothing unless some trajectory needs
@@ -152,19 +152,12 @@ def _transpose_rotate(c1, c2, t2, w, a):
     return _comb((1.0, a), (-c1, _cross(w, a)), (c2 * _dot(w, a), w), (-c2 * t2, a))
 
 
-def _zero_coeffs(kind: str):
-    """``(c_1, c_2, d)`` at ``θ = 0``: ``(1, 1/2, 1/12)`` for the exact variation, ``(1,
-    1/2, 0)`` otherwise (Cayley: ``4/(4 + θ²) = 1``)."""
-    return 1.0, 0.5, (1.0 / 12 if kind == "hamel-exact" else 0.0)
-
-
-def _equations(kind, prm, h, R0, K, p, w, coeffs=None):
+def _equations(kind, prm, h, R0, K, p, w):
     """The reduced step for the increment ``w``: ``(residual, u, μ_{k+1} without its
-    gravity term, c_1, c_2)``. ``coeffs``: ``(c_1, c_2, d)`` held fixed instead of
-    :func:`_coeffs` of ``θ²`` (:func:`_inverse_jacobian`)."""
+    gravity term, c_1, c_2)``."""
     m, M, rho, J = prm["m"], prm["M"], prm["rho"], prm["J"]
     t2 = _dot(w, w)
-    c1, c2, d = _coeffs(kind, t2) if coeffs is None else coeffs
+    c1, c2, d = _coeffs(kind, t2)
     e = _cross(w, rho)
     if kind == "lgvi":
         g, k = _comb((c1, e), (c2, _cross(w, e))), m / h  # (F − I)ρ
@@ -192,18 +185,58 @@ def _equations(kind, prm, h, R0, K, p, w, coeffs=None):
 #: outputs (and, with the same argument shapes, later programs in the process) reuse one
 #: trace and one lowering instead of tracing the scalar arithmetic each time; XLA inlines
 #: the calls, so the compiled program is the same.
-_equations_once = jax.jit(_equations, static_argnames=("kind", "coeffs"))
+_equations_once = jax.jit(_equations, static_argnums=0)
 
 
-def _inverse_jacobian(f, w, one=None):
-    """The inverse of ``∂f/∂w`` (three forward-mode tangents, ``vmap``ped so that ``f`` is
-    traced once), by cofactors, row-major. ``one``: a runtime one, to :func:`_materialize`
-    the Jacobian's entries."""
+def _jacobian(f, w):
+    """``∂f/∂w`` at ``w`` by forward-mode autodiff (three tangents, ``vmap``ped so that ``f``
+    is traced once), row-major: for the generic solver tests and to check
+    :func:`_chord_jacobian`."""
     eye = tuple(jnp.asarray([float(i == j) for j in range(3)], w[i].dtype) for i in range(3))
     rows = jax.vmap(lambda t: jax.jvp(f, (w,), (t,))[1])(eye)  # rows[i][j] = ∂f_i/∂w_j
+    return tuple(rows[i][j] for i in range(3) for j in range(3))
+
+
+def _unit_cross(j, v):
+    """``e_j × v``."""
+    return ((0.0, -v[2], v[1]), (v[2], 0.0, -v[0]), (-v[1], v[0], 0.0))[j]
+
+
+def _chord_jacobian(kind, prm, h, R0, p):
+    """``∂f/∂w`` at ``w = 0`` of :func:`_equations`' residual, row-major, in closed form.
+    At ``θ = 0``: ``c_1 = 1``, ``c_2 = 1/2`` and the terms of second order in ``w`` drop,
+    so with ``e' = δ×ρ``, ``u' = −(m/h) P R_k e'/(m+M)``, ``a' = R_kᵀPᵀu'`` and ``a_0`` the
+    ``a_k`` at ``w = 0``: ``lgvi``: ``f' = Jδ/h + m ρ×a'``; Hamel (``b' = a' − δ×a_0``,
+    ``g_0 = m ρ×a_0``, ``g' = Jδ/h + (m/2) ρ×(a' + b')``): ``f' = g' + δ×g_0/2 −
+    (m/2) e'×a_0``. Equal to the forward-mode derivative to rounding (tested); it replaced
+    it because differentiating (and batching the derivative of) the traced residual cost
+    ~0.4 s of tracing in every program (measured)."""
+    m, M, rho, J = prm["m"], prm["M"], prm["rho"], prm["J"]
+    inv_mass = 1.0 / (m + M)
+    a0 = tuple((R0[0][j] * p[0] + R0[1][j] * p[1]) * inv_mass for j in range(3))
+    if kind != "lgvi":
+        g0 = tuple(m * x for x in _cross(rho, a0))
+    cols = []
+    for j in range(3):
+        ep = _unit_cross(j, rho)
+        up = tuple(-(m / h) * inv_mass * _dot(R0[i], ep) for i in range(2))
+        ap = tuple(R0[0][k] * up[0] + R0[1][k] * up[1] for k in range(3))
+        Jd = tuple(J[i][j] / h for i in range(3))
+        if kind == "lgvi":
+            cols.append(_comb((1.0, Jd), (m, _cross(rho, ap))))
+        else:
+            bp = _comb((1.0, ap), (-1.0, _unit_cross(j, a0)))
+            gp = _comb((1.0, Jd), (0.5 * m, _cross(rho, _comb((1.0, ap), (1.0, bp)))))
+            cols.append(_comb((1.0, gp), (0.5, _unit_cross(j, g0)),
+                              (-0.5 * m, _cross(ep, a0))))
+    return tuple(cols[j][i] for i in range(3) for j in range(3))
+
+
+def _invert3(jac, one=None):
+    """The inverse of a 3x3 matrix (row-major entries) by cofactors. ``one``: a runtime
+    one, to :func:`_materialize` the entries first (each is read by several cofactors)."""
     if one is not None:
-        rows = _materialize(rows, one)
-    jac = tuple(r[j] for r in rows for j in range(3))
+        jac = _materialize(jac, one)
     (j00, j01, j02), (j10, j11, j12), (j20, j21, j22) = jac[:3], jac[3:6], jac[6:]
     k00 = j11 * j22 - j12 * j21
     k01 = j12 * j20 - j10 * j22
@@ -222,7 +255,7 @@ def _materialize(xs, one):
     residual in six kernels (three components of the update, three of its size), so the
     residual was evaluated six times per iteration; materialised, the batched steps are
     1.5-1.6x faster (measured). The same holds for the chord matrix: its nine entries each
-    recomputed the whole Jacobian (three forward-mode tangents of the residual), and each
+    recomputed the whole Jacobian (then three forward-mode tangents of the residual), and each
     Broyden entry the products ``Hy`` and ``sᵀH``. Materialising the residual, the
     Jacobian's rows and Broyden's products cut the optimised batched program from 9290 to
     6350 HLO lines (one trajectory's: 13299 to ~8000) and, measured alternating with the
@@ -287,16 +320,16 @@ def _status(size, prev, chord: bool):
     return st
 
 
-def _solve(f, h, tol, max_steps, dtype, f0=None):
+def _solve(f, h, tol, max_steps, dtype, jac=None, shape=None):
     """``w`` with ``f(w) = 0`` (module docstring): ``(w, iterations, status)``, for one
     trajectory or an explicit batch (every quantity an array of the batch's shape, each
     trajectory's iteration masked once it stops, the loops running while any is active).
-    ``f0``: a function with ``f``'s derivative at ``w = 0``, for the chord matrix (default
-    ``f``)."""
+    ``jac``: ``∂f/∂w`` at ``w = 0`` (row-major), for the chord matrix (default: by
+    :func:`_jacobian`); ``shape``: the batch's shape (default: ``f(0)``'s)."""
     one = h / h
     zero = tuple(jnp.zeros((), dtype) for _ in range(3))
-    Ji0 = _inverse_jacobian(f if f0 is None else f0, zero, one)
-    shape = jnp.shape(f(zero)[0])
+    Ji0 = _invert3(_jacobian(f, zero) if jac is None else jac, one)
+    shape = jnp.shape(f(zero)[0]) if shape is None else shape
 
     def masked(active, new, old):
         return jax.tree.map(lambda a, b: jnp.where(active, a, b), new, old)
@@ -340,7 +373,7 @@ def _solve(f, h, tol, max_steps, dtype, f0=None):
     return w, it, status
 
 
-def _solve_packed(f, h, tol, max_steps, dtype, f0=None):
+def _solve_packed(f, h, tol, max_steps, dtype, jac=None):
     """:func:`_solve` with the loop state packed in one array ``(w, size, status,
     iterations)`` (and, in the Broyden loop, the previous iterate, its residual and the
     inverse), the chord inverse in another: for one trajectory, where XLA makes a kernel of
@@ -349,7 +382,7 @@ def _solve_packed(f, h, tol, max_steps, dtype, f0=None):
     ``vmap``, whose strided columns do not vectorise)."""
     one = h / h
     zero = tuple(jnp.zeros((), dtype) for _ in range(3))
-    Ji0 = _inverse_jacobian(f if f0 is None else f0, zero, one)
+    Ji0 = _invert3(_jacobian(f, zero) if jac is None else jac, one)
 
     def chord(c):
         w = (c[0], c[1], c[2])
@@ -397,20 +430,21 @@ def _step_arrays(kind, tol, max_steps, layout, R, mu, q, p, m, M, g, rho_c, J, h
         # The state's components are sliced inside the Newton loop: sliced outside, every
         # scalar is a separate loop operand, materialised by its own kernel (20 kernels a
         # step; measured 12 % faster for lgvi inside).
-        def residual(w, coeffs=None):
+        def residual(w):
             prm_, R0_, K_, p0_ = unpack()
-            return _equations_once(kind, prm_, h, R0_, K_, p0_, w, coeffs)[0]
+            return _equations_once(kind, prm_, h, R0_, K_, p0_, w)[0]
     else:
-        def residual(w, coeffs=None):
-            return _equations_once(kind, prm, h, R0, K, p0, w, coeffs)[0]
+        def residual(w):
+            return _equations_once(kind, prm, h, R0, K, p0, w)[0]
 
-    solve = _solve_packed if layout == "packed" else _solve
-    # The chord matrix ∂f/∂w at w = 0 with the coefficients of F held at θ = 0: exact,
-    # since they depend on w through θ² = |w|², whose derivative vanishes there; tracing
-    # skips their derivatives and the cond of _coeffs. With the tangents vmapped, 0.3-0.6 s
-    # less tracing for each program (one trajectory, batch; hamel-exact, measured).
-    w, its, status = solve(residual, h, tol, max_steps, dtype,
-                           functools.partial(residual, coeffs=_zero_coeffs(kind)))
+    jac = _chord_jacobian(kind, prm, h, R0, p0)
+    if layout == "packed":
+        w, its, status = _solve_packed(residual, h, tol, max_steps, dtype, jac)
+    else:
+        shape = jnp.broadcast_shapes(R.shape[:-2], mu.shape[:-1], q.shape[:-1], p.shape[:-1],
+                                     *(jnp.shape(x) for x in (m, M, g, h)),
+                                     rho_c.shape[:-1], J.shape[:-2])
+        w, its, status = _solve(residual, h, tol, max_steps, dtype, jac, shape)
     res, u, nxt, c1, c2 = _equations_once(kind, prm, h, R0, K, p0, w)
     # R_{k+1} = R_k F,  F = I + c_1 ŵ + c_2 (w wᵀ − θ² I)
     dg = 1.0 - c2 * _dot(w, w)
