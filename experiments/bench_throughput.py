@@ -129,10 +129,17 @@ def _bench_numba(nb, name: str, model, s0, steps: int, batch: int, repeats: int)
 def _long_run_memory(n_steps: int, log) -> dict:
     """Peak resident memory of ``lgvi-jax simulate`` over ``n_steps`` (child process)."""
     with tempfile.TemporaryDirectory() as tmp:
+        # The child's own high-water mark: VmHWM of /proc/self/status belongs to the
+        # address space the child built after exec. Its ru_maxrss would not do: Linux
+        # keeps the maximum across execve, so it starts at the size of the forked
+        # benchmark process (a measured 1 GB whatever the run).
         script = (
             "import resource, sys; from lgvi_jax.cli import main; "
             "code = main(sys.argv[1:]); "
-            "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0); "
+            "hwm = [l.split()[1] for l in open('/proc/self/status') if l.startswith('VmHWM')] "
+            "if sys.platform.startswith('linux') else []; "
+            "print(int(hwm[0]) / 1024.0 if hwm else "
+            "resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0); "
             "sys.exit(code)"
         )
         args = [sys.executable, "-c", script, "simulate", "car-pendulum", "--method", "lgvi",
