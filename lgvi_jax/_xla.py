@@ -17,17 +17,25 @@ function emitter cannot compile (custom calls such as LAPACK solves, sorts, scat
 the YNN library's fusions that XLA makes of small matrix products, as in the general
 engine's steps) keep the thunk runtime.
 
-The option only takes effect if set before JAX starts its CPU backend, so it is added to
-``XLA_FLAGS`` here, at import, when
+**The classic elemental emitter.** ``--xla_cpu_use_fusion_emitters=false``: XLA CPU then
+generates each fusion's code with its elemental IR emitter instead of the newer MLIR
+fusion emitters, which also wrap single operations into fusions of their own. Measured on
+the 2-core CPU (``lgvi-jax bench``, same run, README "Benchmark"): compiles 20-35 % faster
+(general engine ``hamel-exact`` one trajectory 3.04 -> 2.08 s, fused ``lgvi`` batch 1.50
+-> 1.33 s), the same or higher throughput, the test suite 7.4 -> 5.3 min, trajectories
+equal to rounding.
+
+The options only take effect if set before JAX starts its CPU backend, so they are added
+to ``XLA_FLAGS`` here, at import, when
 
 * the backend has not started yet (otherwise a :class:`XlaSettingWarning` says how to get
-  it: import :mod:`lgvi_jax` before running any JAX computation, or set ``XLA_FLAGS``
+  them: import :mod:`lgvi_jax` before running any JAX computation, or set ``XLA_FLAGS``
   yourself),
-* ``XLA_FLAGS`` does not already set ``xla_backend_extra_options`` (yours are kept as they
-  are), and
+* ``XLA_FLAGS`` does not already set the option (``xla_backend_extra_options``,
+  ``xla_cpu_use_fusion_emitters``: yours are kept as they are), and
 * the environment variable ``LGVI_JAX_XLA_TUNING`` is not ``0`` (the opt-out).
 
-It changes how XLA compiles every CPU program of the process, not only lgvi_jax's.
+They change how XLA compiles every CPU program of the process, not only lgvi_jax's.
 """
 
 from __future__ import annotations
@@ -44,6 +52,9 @@ SMALL_LOOP_BYTES = 64 * 2**20
 _OPTION = "xla_cpu_small_while_loop_byte_threshold"
 OPT_OUT = "LGVI_JAX_XLA_TUNING"
 
+#: The ``XLA_FLAGS`` entry of the emitter setting (module docstring).
+EMITTER_FLAG = "--xla_cpu_use_fusion_emitters=false"
+
 
 class XlaSettingWarning(UserWarning):
     """lgvi_jax could not apply its XLA setting (module docstring)."""
@@ -58,24 +69,36 @@ def _backend_started() -> bool:
 
 
 def flag() -> str:
-    """The ``XLA_FLAGS`` entry this module adds."""
+    """The ``XLA_FLAGS`` entry of the small-loop setting."""
     return f"--xla_backend_extra_options={_OPTION}={SMALL_LOOP_BYTES}"
 
 
+def flags() -> list[str]:
+    """Every ``XLA_FLAGS`` entry this module adds (where the user's flags leave room)."""
+    return [flag(), EMITTER_FLAG]
+
+
+# (entry, option names that mean the user has chosen it already)
+_SETTINGS = ((flag(), (_OPTION, "xla_backend_extra_options")),
+             (EMITTER_FLAG, ("xla_cpu_use_fusion_emitters",)))
+
+
 def configure() -> bool:
-    """Add :func:`flag` to ``XLA_FLAGS`` where the module docstring says; ``True`` if the
-    setting is (or already was) in effect."""
-    flags = os.environ.get("XLA_FLAGS", "")
-    if _OPTION in flags:
-        return True
-    if os.environ.get(OPT_OUT, "1").strip() == "0" or "xla_backend_extra_options" in flags:
-        return False
+    """Add :func:`flags` to ``XLA_FLAGS`` where the module docstring says; ``True`` if the
+    small-loop setting is (or already was) in effect."""
+    current = os.environ.get("XLA_FLAGS", "")
+    if os.environ.get(OPT_OUT, "1").strip() == "0":
+        return _OPTION in current
+    missing = [entry for entry, names in _SETTINGS if not any(n in current for n in names)]
+    if not missing:
+        return _OPTION in current
     if _backend_started():
         warnings.warn(
-            "lgvi_jax was imported after JAX started its backend, so XLA's small-loop "
-            "compilation is off (single trajectories run ~3x slower on the CPU); import "
-            f"lgvi_jax before the first JAX computation, or set XLA_FLAGS='{flag()}' "
-            f"(set {OPT_OUT}=0 to silence this)", XlaSettingWarning, stacklevel=3)
-        return False
-    os.environ["XLA_FLAGS"] = f"{flags} {flag()}".strip()
-    return True
+            "lgvi_jax was imported after JAX started its backend, so its XLA settings are "
+            "off (small-loop compilation: single trajectories run ~3x slower on the CPU; "
+            "the elemental emitter: compiles take ~30% longer); import lgvi_jax before the "
+            f"first JAX computation, or set XLA_FLAGS='{' '.join(missing)}' (set "
+            f"{OPT_OUT}=0 to silence this)", XlaSettingWarning, stacklevel=3)
+        return _OPTION in current
+    os.environ["XLA_FLAGS"] = " ".join([current.strip(), *missing]).strip()
+    return _OPTION in os.environ["XLA_FLAGS"]

@@ -26,7 +26,8 @@ for name in ("lgvi", "hamel-exact"):
     state, code = compiled(model.default_state())
     out[name] = {"R": np.asarray(state.R).tolist(), "mu": np.asarray(state.mu).tolist(),
                  "q": np.asarray(state.q).tolist(), "code": int(code),
-                 "small_calls": compiled.as_text().count("xla_cpu_small_call")}
+                 "small_calls": compiled.as_text().count("xla_cpu_small_call"),
+                 "wrapped": compiled.as_text().count("%wrapped_")}
 out["flags"] = __import__("os").environ.get("XLA_FLAGS", "")
 print(json.dumps(out))
 """
@@ -43,14 +44,18 @@ def test_setting_is_applied_at_import_and_changes_only_rounding():
     tuned, plain = (_child(_ROLLOUT, **env) for env in ({}, {_xla.OPT_OUT: "0"}))
     assert tuned.returncode == 0 and plain.returncode == 0, tuned.stderr + plain.stderr
     tuned, plain = json.loads(tuned.stdout), json.loads(plain.stdout)
-    assert _xla.flag() in tuned["flags"]
+    assert all(entry in tuned["flags"].split() for entry in _xla.flags())
     assert "xla_backend_extra_options" not in plain["flags"]
+    assert "xla_cpu_use_fusion_emitters" not in plain["flags"]
     for name in ("lgvi", "hamel-exact"):
         a, b = tuned[name], plain[name]
         assert a["code"] == b["code"] == 0
         # The tuned program compiles the rollout's loops (the step loop and both Newton
         # loops) as single functions; by default XLA does so only for the innermost loop.
         assert a["small_calls"] > b["small_calls"] >= 0
+        # The elemental emitter does not wrap single operations into fusions of their own,
+        # as the default fusion emitters do (the wrappers are named in the program's text).
+        assert a["wrapped"] < b["wrapped"]
         # 2000 steps of the same equations: the two compilations round differently
         # (instruction selection, contraction to FMA), and the pendulum's motion amplifies
         # rounding over t = 10 (measured: 6e-12 apart for lgvi, 4e-12 for hamel-exact);
@@ -69,11 +74,19 @@ def test_user_options_are_kept():
     mine = "--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=4096"
     out = _child(code, XLA_FLAGS=mine)
     assert out.returncode == 0, out.stderr
-    assert out.stdout.strip() == mine
+    assert out.stdout.split() == [mine, _xla.EMITTER_FLAG]
+    emitters = "--xla_cpu_use_fusion_emitters=true"
+    out = _child(code, XLA_FLAGS=emitters)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == [emitters, _xla.flag()]
     other = "--xla_force_host_platform_device_count=2"
     out = _child(code, XLA_FLAGS=other)
     assert out.returncode == 0, out.stderr
-    assert out.stdout.split() == [other, _xla.flag()]
+    assert out.stdout.split() == [other, *_xla.flags()]
+    both = f"{mine} {emitters}"
+    out = _child(code, XLA_FLAGS=both)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == both
 
 
 def test_too_late_warns_and_says_how_to_fix():
@@ -95,3 +108,4 @@ def test_opt_out(value):
     out = _child("import os, lgvi_jax; print(os.environ.get('XLA_FLAGS', ''))",
                  **{_xla.OPT_OUT: value})
     assert out.returncode == 0 and "xla_backend_extra_options" not in out.stdout
+    assert "xla_cpu_use_fusion_emitters" not in out.stdout
