@@ -123,6 +123,30 @@ def test_large_steps_converge_like_the_general_engine(car):
     assert float(np.mean(res["newton_mean"])) < 14
 
 
+def test_very_large_steps_restart_broyden_where_the_chord_stalls(car):
+    # h = 0.2 (40x the benchmark's step) with 30 % perturbations, 50 steps: the chord at
+    # w = 0 stalls in most steps. Broyden continued from the chord's last iterate with its
+    # matrix converged 4 of these 256 trajectories; restarted at the chord's first iterate
+    # with the Jacobian there, all 256, as the general engine does (measured).
+    model, s0 = car
+    method = fused.FusedCarPendulum("hamel-exact")
+    states = initial_conditions(model, s0, 256, 0.3, seed=1)
+    res = run_batch(model, method, states, 0.2, 50)
+    assert int(np.sum(res["result"] != 0)) == 0
+    # One trajectory (the packed loop, its restart under a scalar cond) takes the same
+    # steps as the batch (the batch-wide cond): three steps of the first four states.
+    some = jax.tree.map(lambda x: x[:4], states)
+    batch = jax.jit(jax.vmap(lambda s: lj.final_state(model, method, s, 0.2, 3)))(some)
+    assert np.all(np.asarray(batch[1]) == 0)
+    single = jax.jit(lambda s: lj.final_state(model, method, s, 0.2, 3))
+    for i in range(4):
+        state, code = single(jax.tree.map(lambda x, i=i: x[i], some))
+        assert int(code) == 0
+        # Both layouts iterate alike to the tolerance 1e-14 relative; they round
+        # differently (vector loops, FMA) and can stop an iteration apart: measured ~1e-15.
+        assert _max_diff(state, jax.tree.map(lambda x, i=i: x[i], batch[0])) < 1e-12
+
+
 def test_single_and_batched_layouts_agree_under_nested_vmap(car):
     """One trajectory runs the packed loop, a batch the structure-of-arrays loop
     (``custom_vmap``); nested batches and batches over parameters (the model is a pytree)

@@ -32,13 +32,15 @@ In every method ``p_{k+1} = p_k`` exactly and ``q_{k+1} = q_k + hu``.
 
 **Solver.** Newton's method on ``w`` from ``w = 0``, first as a chord iteration with the
 Jacobian at ``w = 0`` (in closed form, :func:`_chord_jacobian`, once per step), inverted
-by cofactors. When an update is not below
-a quarter of the previous one (:data:`_CONTRACTION`) or stops being finite, a second loop
-continues from the last finite iterate by Broyden's method (secant updates of that
-inverse, :func:`_broyden`); under ``vmap`` it costs nothing unless some trajectory needs
-it. It replaced plain Newton (a fresh Jacobian every iteration), which was no more robust
-(measured on 256 trajectories perturbed by 0.3 at h = 0.02-0.2: the same failures within
-1-6 per setting) and cost a second copy of the Jacobian, ~1 s of the batched program's
+by cofactors. When an update is not below a quarter of the previous one
+(:data:`_CONTRACTION`) or stops being finite, a second loop continues by Broyden's method
+(secant updates of an inverse Jacobian, :func:`_broyden`): for the Hamel methods restarted
+from the chord's first iterate with the inverse of the Jacobian there (:func:`_restart`),
+for ``lgvi`` from the last finite iterate with the chord's inverse. Under ``vmap`` it
+costs nothing unless some trajectory needs it. Broyden replaced plain Newton (a fresh
+Jacobian every iteration, continued from the chord's last iterate), which was no more
+robust (measured on 256 trajectories perturbed by 0.3 at h = 0.02-0.2: the same failures
+within 1-6 per setting) and cost a Jacobian inside a loop, ~1 s of the batched program's
 compile time. Convergence: ``|Δw_i| <= tol (h + |w_i|)``, the general engine's ``|Δξ_i|
 <= tol (1 + |ξ_i|)`` for ``ξ = w/h``, with ``tol = 1e-14`` (:attr:`FusedCarPendulum.tol`).
 Result codes as :data:`~lgvi_jax.newton.RESULTS`; ``newton_steps`` counts residual
@@ -56,10 +58,10 @@ equations by the same iteration (equal to a few ulps, tested).
 
 **Limits.** Only :class:`~lgvi_jax.models.rigid_bodies.CarPendulum`. Large steps: on
 the 256 perturbed trajectories above every fused method converges at h <= 0.1, as the
-general engine does, but at h = 0.2 the fused steps converge for 1-54 % of them (hamel,
-hamel-exact, hamel-cayley; the rest reach the iteration cap) and the general engine, Newton
-from the current velocities with the Jacobian there, for 76-100 % (lgvi: none for either
-engine). Use the general engine (``--engine general``) for such steps. No derivatives
+general engine does; at h = 0.2 (50 steps) ``hamel``, ``hamel-cayley`` and
+``hamel-exact`` converge for 245, 256 and 256 of them with the restart (25, 173 and 4
+without it) and the general engine, Newton from the current velocities with the Jacobian
+there, for 201, 250 and 256; ``lgvi`` for none with either engine (at h = 0.15, 69). No derivatives
 (``custom_vmap`` has no differentiation rule): for gradients (inertia fitting) use the
 general methods, whose Newton solves have implicit-function-theorem derivatives.
 """
@@ -190,9 +192,13 @@ _equations_once = jax.jit(_equations, static_argnums=0)
 
 def _jacobian(f, w):
     """``∂f/∂w`` at ``w`` by forward-mode autodiff (three tangents, ``vmap``ped so that ``f``
-    is traced once), row-major: for the generic solver tests and to check
-    :func:`_chord_jacobian`."""
-    eye = tuple(jnp.asarray([float(i == j) for j in range(3)], w[i].dtype) for i in range(3))
+    is traced once), row-major; ``w``'s components may be arrays of a batch (each
+    trajectory's own 3x3 Jacobian): for the Broyden restart (:func:`_restart`), the generic
+    solver tests and to check :func:`_chord_jacobian`."""
+    shape = jnp.shape(w[0])
+    eye = tuple(jnp.broadcast_to(
+        jnp.asarray([float(i == j) for j in range(3)], w[i].dtype).reshape(
+            (3,) + (1,) * len(shape)), (3, *shape)) for i in range(3))
     rows = jax.vmap(lambda t: jax.jvp(f, (w,), (t,))[1])(eye)  # rows[i][j] = ∂f_i/∂w_j
     return tuple(rows[i][j] for i in range(3) for j in range(3))
 
@@ -306,6 +312,19 @@ def _broyden(H, s, y, one):
                  for i in range(3) for j in range(3))
 
 
+def _restart(f, Ji0, h, tol, one, shape, dtype):
+    """Where Broyden's loop starts when the chord stalls: the chord's first iterate
+    ``w_1 = −J_0⁻¹ f(0)`` (about ``hΩ_k``, the general engine's start) and the inverse of
+    the Jacobian there (:func:`_jacobian`). Restarting there instead of continuing from the
+    chord's last iterate with its matrix: at h = 0.2 on 256 trajectories perturbed by 0.3
+    (50 steps), the trajectories converged went from 25 to 245 (``hamel``), 173 to 256
+    (``hamel-cayley``) and 4 to 256 (``hamel-exact``); from ``w_1`` with the chord's matrix,
+    184, 248 and 188 (measured)."""
+    z = tuple(jnp.zeros(shape, dtype) for _ in range(3))
+    w1, _ = _newton_update(Ji0, z, _materialize(f(z), one), h, tol)
+    return w1, _invert3(_jacobian(f, w1), one)
+
+
 def _status(size, prev, chord: bool):
     """The loop status after an update of ``size`` (the previous one ``prev``): converged;
     running; in the chord loop, stalled (not below :data:`_CONTRACTION` of the previous
@@ -320,12 +339,13 @@ def _status(size, prev, chord: bool):
     return st
 
 
-def _solve(f, h, tol, max_steps, dtype, jac=None, shape=None):
+def _solve(f, h, tol, max_steps, dtype, jac=None, shape=None, restart=True):
     """``w`` with ``f(w) = 0`` (module docstring): ``(w, iterations, status)``, for one
     trajectory or an explicit batch (every quantity an array of the batch's shape, each
     trajectory's iteration masked once it stops, the loops running while any is active).
     ``jac``: ``∂f/∂w`` at ``w = 0`` (row-major), for the chord matrix (default: by
-    :func:`_jacobian`); ``shape``: the batch's shape (default: ``f(0)``'s)."""
+    :func:`_jacobian`); ``shape``: the batch's shape (default: ``f(0)``'s); ``restart``:
+    Broyden from :func:`_restart`, else from the chord's last iterate with its matrix."""
     one = h / h
     zero = tuple(jnp.zeros((), dtype) for _ in range(3))
     Ji0 = _invert3(_jacobian(f, zero) if jac is None else jac, one)
@@ -360,11 +380,17 @@ def _solve(f, h, tol, max_steps, dtype, jac=None, shape=None):
     carry = jax.lax.while_loop(going(_RUNNING), chord, init)
 
     def fallback(carry):
-        # Broyden from the last finite iterate, with the chord's inverse as its first
-        # matrix (s = 0 skips the first update).
-        secant = (carry[0], tuple(jnp.zeros(shape, dtype) for _ in range(3)),
-                  tuple(jnp.broadcast_to(x, shape) for x in Ji0))
-        return jax.lax.while_loop(lambda c: going(_NEWTON)(c[0]), broyden, (carry, secant))[0]
+        # Broyden from the restart point (:func:`_restart`; s = 0 skips the first update)
+        # for the trajectories whose chord stalled.
+        if restart:
+            w1, H = _restart(f, Ji0, h, tol, one, shape, dtype)
+            w = tuple(jnp.where(carry[3] == _NEWTON, a, b) for a, b in zip(w1, carry[0],
+                                                                            strict=True))
+        else:
+            w, H = carry[0], tuple(jnp.broadcast_to(x, shape) for x in Ji0)
+        secant = (w, tuple(jnp.zeros(shape, dtype) for _ in range(3)), H)
+        return jax.lax.while_loop(lambda c: going(_NEWTON)(c[0]), broyden,
+                                  ((w, *carry[1:]), secant))[0]
 
     # Entered only when needed: setting up its state every step (an empty loop) cost 20-25 %
     # of the batched throughput (measured, hamel-exact; for one trajectory, whose packed
@@ -373,7 +399,7 @@ def _solve(f, h, tol, max_steps, dtype, jac=None, shape=None):
     return w, it, status
 
 
-def _solve_packed(f, h, tol, max_steps, dtype, jac=None):
+def _solve_packed(f, h, tol, max_steps, dtype, jac=None, restart=True):
     """:func:`_solve` with the loop state packed in one array ``(w, size, status,
     iterations)`` (and, in the Broyden loop, the previous iterate, its residual and the
     inverse), the chord inverse in another: for one trajectory, where XLA makes a kernel of
@@ -402,9 +428,20 @@ def _solve_packed(f, h, tol, max_steps, dtype, jac=None):
     def going(want):
         return lambda c: (c[4] == want) & (c[5] < max_steps)
 
+    def restart_at(c):
+        w1, H = _restart(f, Ji0, h, tol, one, (), dtype)
+        return jnp.concatenate([jnp.stack(w1), c[3:], jnp.stack(w1), jnp.zeros(3, dtype),
+                                jnp.stack(H)])
+
+    def done(c):
+        return jnp.concatenate([c, jnp.zeros(15, dtype)])
+
     init = jnp.array([0.0, 0.0, 0.0, jnp.inf, _RUNNING, 0.0], dtype)
     c = jax.lax.while_loop(going(_RUNNING), chord, init)
-    c = jnp.concatenate([c, c[:3], jnp.zeros(3, dtype), jnp.stack(Ji0)])
+    if restart:
+        c = jax.lax.cond(c[4] == _NEWTON, restart_at, done, c)
+    else:
+        c = jnp.concatenate([c, c[:3], jnp.zeros(3, dtype), jnp.stack(Ji0)])
     c = jax.lax.while_loop(going(_NEWTON), broyden, c)
     return (c[0], c[1], c[2]), c[5].astype(jnp.int32), c[4].astype(jnp.int32)
 
@@ -438,13 +475,18 @@ def _step_arrays(kind, tol, max_steps, layout, R, mu, q, p, m, M, g, rho_c, J, h
             return _equations_once(kind, prm, h, R0, K, p0, w)[0]
 
     jac = _chord_jacobian(kind, prm, h, R0, p0)
+    # The Broyden restart (:func:`_restart`) for the Hamel methods; for ``lgvi`` it converged
+    # no more trajectories (h = 0.12: 241 against 240 of 256, h = 0.15: 69 against 70) and
+    # under JAX's batching of its loops (lgvi's batched layout) a batched ``cond`` runs both
+    # branches: 28 % slower at h = 5e-3 (measured).
+    restart = kind != "lgvi"
     if layout == "packed":
-        w, its, status = _solve_packed(residual, h, tol, max_steps, dtype, jac)
+        w, its, status = _solve_packed(residual, h, tol, max_steps, dtype, jac, restart)
     else:
         shape = jnp.broadcast_shapes(R.shape[:-2], mu.shape[:-1], q.shape[:-1], p.shape[:-1],
                                      *(jnp.shape(x) for x in (m, M, g, h)),
                                      rho_c.shape[:-1], J.shape[:-2])
-        w, its, status = _solve(residual, h, tol, max_steps, dtype, jac, shape)
+        w, its, status = _solve(residual, h, tol, max_steps, dtype, jac, shape, restart)
     res, u, nxt, c1, c2 = _equations_once(kind, prm, h, R0, K, p0, w)
     # R_{k+1} = R_k F,  F = I + c_1 ŵ + c_2 (w wᵀ − θ² I)
     dg = 1.0 - c2 * _dot(w, w)
