@@ -61,9 +61,10 @@ the 256 perturbed trajectories above every fused method converges at h <= 0.1, a
 general engine does; at h = 0.2 (50 steps) ``hamel``, ``hamel-cayley`` and
 ``hamel-exact`` converge for 245, 256 and 256 of them with the restart (25, 173 and 4
 without it) and the general engine, Newton from the current velocities with the Jacobian
-there, for 201, 250 and 256; ``lgvi`` for none with either engine (at h = 0.15, 69). No derivatives
-(``custom_vmap`` has no differentiation rule): for gradients (inertia fitting) use the
-general methods, whose Newton solves have implicit-function-theorem derivatives.
+there, for 201, 250 and 256; ``lgvi`` for none with either engine (at h = 0.15: 69, the
+general engine 71). No derivatives (``custom_vmap`` has no differentiation rule): for
+gradients (inertia fitting) use the general methods, whose Newton solves have
+implicit-function-theorem derivatives.
 """
 
 from __future__ import annotations
