@@ -38,6 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from lgvi_jax import so3
+from lgvi_jax._io import atomic_write_text
 from lgvi_jax.diagnostics import drift_ratio, environment, observed_order
 from lgvi_jax.integrators import RIGID_METHODS, resolve_method
 from lgvi_jax.models import CarPendulum
@@ -509,7 +510,7 @@ def write_summary(results: dict, out: Path) -> str:
     for i, v in enumerate(results["verdicts"].values(), 1):
         lines.append(f"{i}. *{v['claim']}* — **{v['verdict']}**: {v['evidence']}.")
     text = "\n".join(lines) + "\n"
-    (out / "summary.md").write_text(text)
+    atomic_write_text(out / "summary.md", text)
     return text
 
 
@@ -537,7 +538,7 @@ def run(out_dir: Path | str, *, quick: bool = False, log: Callable = print) -> d
     }
     write_summary(results, out)
     # results.json last: its presence marks the stage as complete (see lgvi_jax.reproduce).
-    (out / "results.json").write_text(json.dumps(results, indent=2))
+    atomic_write_text(out / "results.json", json.dumps(results, indent=2))
     return results
 
 

@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from lgvi_jax import identify
+from lgvi_jax._io import atomic_write_text
 from lgvi_jax.diagnostics import environment
 from lgvi_jax.inertia import centroidal_inertia, is_physical, pivot_inertia
 from lgvi_jax.models import CarPendulum
@@ -144,7 +145,7 @@ def run(out_dir: Path | str, *, quick: bool = False, log: Callable = print) -> d
     figures(results, out)
     write_summary(results, out)
     # results.json last: its presence marks the stage as complete (see lgvi_jax.reproduce).
-    (out / "results.json").write_text(json.dumps(results, indent=1))
+    atomic_write_text(out / "results.json", json.dumps(results, indent=1))
     return results
 
 
@@ -224,7 +225,7 @@ def write_summary(results: dict, out: Path) -> None:
         "",
         "Figures: `loss_curves.png`, `error_vs_step.png`.",
     ]
-    (out / "summary.md").write_text("\n".join(lines) + "\n")
+    atomic_write_text(out / "summary.md", "\n".join(lines) + "\n")
 
 
 def main(argv=None) -> int:

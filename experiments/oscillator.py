@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 from matplotlib.ticker import NullFormatter
 
+from lgvi_jax._io import atomic_write_text
 from lgvi_jax.diagnostics import (
     drift_ratio,
     environment,
@@ -294,7 +295,7 @@ def write_summary(results: dict, out: Path) -> str:
         f"closer in energy. {cross_txt}.",
     ]
     text = "\n".join(lines) + "\n"
-    (out / "summary.md").write_text(text)
+    atomic_write_text(out / "summary.md", text)
     return text
 
 
@@ -323,7 +324,7 @@ def run(out_dir: Path | str, *, quick: bool = False, log: Callable = print) -> d
     }
     write_summary(results, out)
     # results.json last: its presence marks the stage as complete (see lgvi_jax.reproduce).
-    (out / "results.json").write_text(json.dumps(results, indent=2))
+    atomic_write_text(out / "results.json", json.dumps(results, indent=2))
     return results
 
 

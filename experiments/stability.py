@@ -56,6 +56,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from lgvi_jax._io import atomic_write_text
 from lgvi_jax.diagnostics import environment
 from lgvi_jax.models import CarPendulum, HarmonicOscillator, PhaseState
 from lgvi_jax.newton import RESULTS
@@ -412,7 +413,7 @@ def write_summary(results: dict, out: Path) -> str:
     lines += ["", "**Reading the numbers:**", ""]
     lines += verdicts(results)
     text = "\n".join(lines) + "\n"
-    (out / "summary.md").write_text(text)
+    atomic_write_text(out / "summary.md", text)
     return text
 
 
@@ -487,7 +488,7 @@ def run(out_dir: Path | str, *, quick: bool = False, log: Callable = print) -> d
     }
     write_summary(results, out)
     # results.json last: its presence marks the stage as complete (see lgvi_jax.reproduce).
-    (out / "results.json").write_text(json.dumps(_jsonable(results), indent=1))
+    atomic_write_text(out / "results.json", json.dumps(_jsonable(results), indent=1))
     return results
 
 

@@ -70,6 +70,7 @@ import numpy as np
 
 import lgvi_jax
 from lgvi_jax import diagnostics, so3
+from lgvi_jax._io import atomic_write_text
 from lgvi_jax.models import CarPendulum, HarmonicOscillator, PhaseState
 from lgvi_jax.plotting import figure, method_style, positive, save
 from lgvi_jax.reference import HandReference, moving_scene
@@ -960,7 +961,7 @@ def write_summary(results: dict, out: Path) -> str:
     lines += method_table(results)
     lines += ["", "Charts: " + ", ".join(f"`{f}`" for f in results["files"]), ""]
     text = "\n".join(lines) + "\n"
-    (out / "summary.md").write_text(text)
+    atomic_write_text(out / "summary.md", text)
     return text
 
 
@@ -1045,7 +1046,7 @@ def run(out_dir: Path | str, *, quick: bool = False, log: Callable = print) -> d
     if "long" in results:
         clean["long"] = {**results["long"], "runs": _strip(results["long"]["runs"], True)}
     # results.json last: its presence marks the stage as complete (see lgvi_jax.reproduce).
-    (out / "results.json").write_text(json.dumps(_jsonable(clean), indent=1))
+    atomic_write_text(out / "results.json", json.dumps(_jsonable(clean), indent=1))
     return results
 
 

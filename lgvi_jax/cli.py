@@ -12,12 +12,13 @@ import json
 import math
 import os
 import sys
-import tempfile
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, NoReturn
+from typing import NoReturn
 
 import numpy as np
+
+from ._io import atomic_write_json, save_npz_atomic
 
 PROG = "lgvi-jax"
 
@@ -91,20 +92,6 @@ def _positive_int(text: str) -> int:
     return value
 
 
-def write_npz_atomic(path: Path, arrays: dict[str, Any]) -> None:
-    """Write ``arrays`` to ``path`` (.npz) through a temporary file and a rename, so an
-    interrupted run never leaves a truncated file behind."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            np.savez(fh, **arrays)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def _check_writable_file(path: Path) -> None:
     parent = path.parent
     try:
@@ -165,7 +152,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     arrays["result"] = np.asarray(traj.result)
     arrays["newton_iterations"] = np.asarray(traj.newton_steps)
     arrays["config_json"] = np.asarray(json.dumps(config))
-    write_npz_atomic(out, arrays)
+    save_npz_atomic(out, arrays)
     report = {
         **config,
         **summary,
@@ -330,20 +317,6 @@ def cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
-def write_json_atomic(path: Path, obj: Any) -> None:
-    """Write ``obj`` as JSON to ``path`` through a temporary file and a rename."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as fh:
-            json.dump(obj, fh, indent=1)
-            fh.write("\n")
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 #: ``--init`` names of ``lgvi-jax fit`` (the initial state's R0 and q0 come from the data).
 FIT_INIT_NAMES = ("J", "rho_c", "m", "M", "g", "omega0", "v0")
 
@@ -418,7 +391,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
         "observations": int(np.size(obs.t)),
         "init": {k: v.tolist() for k, v in init.items()},
     }
-    write_json_atomic(out, report)
+    atomic_write_json(out, report)
     if args.json:
         print(json.dumps({k: v for k, v in report.items() if k != "loss_history"}))
     else:

@@ -19,6 +19,8 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+from ._io import atomic_write_text
+
 __all__ = ["FULL_STAGES", "STAGES", "reproduce"]
 
 #: (name, module): each module has ``run(out_dir, quick=False, log=print) -> dict``.
@@ -73,6 +75,6 @@ def reproduce(
         if summary.exists():
             sections.append(f"## {name}\n\nFolder: `{name}/`\n\n{summary.read_text()}")
     index = out / "README.md"
-    index.write_text("# lgvi_jax: reproduced results\n\n" + "\n\n".join(sections) + "\n")
+    atomic_write_text(index, "# lgvi_jax: reproduced results\n\n" + "\n\n".join(sections) + "\n")
     log(f"results in {out} (index: {index})")
     return index

@@ -55,7 +55,6 @@ import dataclasses
 import json
 import math
 import os
-import tempfile
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -67,7 +66,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import so3
-from .cli import write_npz_atomic
+from ._io import atomic_open, atomic_write_json, atomic_write_text, save_npz_atomic
 from .newton import RESULTS
 from .progress import Progress
 from .simulate import guarded_step
@@ -452,17 +451,6 @@ def _chunk_plan(config: SweepConfig) -> list[dict[str, Any]]:
     return plan
 
 
-def _write_json_atomic(path: Path, obj: Any) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as fh:
-            json.dump(obj, fh, indent=1)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def _chunk_ok(path: Path, expected: int) -> bool:
     try:
         with np.load(path) as data:
@@ -499,7 +487,7 @@ def prepare_out_dir(out: Path, config: SweepConfig, resume: bool) -> dict[str, A
             raise SweepError(f"--resume: the sweep in {out} was started with a different "
                              f"configuration (differs in: {', '.join(diffs) or 'format'}); "
                              "use the same arguments or another folder")
-    _write_json_atomic(manifest_path, manifest)
+    atomic_write_json(manifest_path, manifest)
     return manifest
 
 
@@ -549,7 +537,7 @@ def run_sweep(config: SweepConfig, model, state0, make_method: Callable[[str], A
             timings[key] = timings.get(key, 0.0) + time.perf_counter() - start
             arrays = {k: v[:count] for k, v in res.items()}
             arrays["index"] = np.arange(c["start"], c["stop"], dtype=np.int64)
-            write_npz_atomic(out / c["file"], arrays)
+            save_npz_atomic(out / c["file"], arrays)
             bar.advance(count)
     finally:
         bar.close()
@@ -601,16 +589,14 @@ def summarize_sweep(config: SweepConfig, results) -> dict[str, Any]:
 def _write_outputs(out: Path, config: SweepConfig, results, summary) -> None:
     # trajectories.csv: one row per (method, dt, i)
     fields = [k for k in next(iter(results.values())) if k != "index"]
-    tmp = out / ".trajectories.csv.tmp"
-    with open(tmp, "w", newline="") as fh:
+    with atomic_open(out / "trajectories.csv", "w", newline="") as fh:
         writer = csv.writer(fh)
         writer.writerow(["method", "dt", "index", *fields])
         for (method, dt), r in results.items():
             for j in range(r["index"].size):
                 writer.writerow([method, repr(dt), int(r["index"][j]),
                                  *(repr(r[k][j].item()) for k in fields)])
-    os.replace(tmp, out / "trajectories.csv")
-    _write_json_atomic(out / "summary.json", summary)
+    atomic_write_json(out / "summary.json", summary)
     lines = [f"# Sweep: {config.system}, {config.n} initial conditions, perturbation "
              f"{config.perturb:g}, seed {config.seed}, t_final = {config.t_final:g}", "",
              "Relative energy error max |H - H0|/|H0| per trajectory (over trajectories "
@@ -621,7 +607,7 @@ def _write_outputs(out: Path, config: SweepConfig, results, summary) -> None:
         lines.append(f"| {row['method']} | {row['dt']:g} | {row['failed']}/{row['n']} | "
                      f"{row['energy_error_max_median']:.3e} | {row['energy_error_max_p95']:.3e}"
                      f" | {row['energy_error_max_max']:.3e} | {row['newton_mean']:.2f} |")
-    (out / "summary.md").write_text("\n".join(lines) + "\n")
+    atomic_write_text(out / "summary.md", "\n".join(lines) + "\n")
     _plot(out / "energy_error.png", config, results)
 
 
