@@ -28,6 +28,7 @@ __all__ = [
     "atomic_write_text",
     "current_umask",
     "default_file_mode",
+    "read_npz",
     "save_npz_atomic",
 ]
 
@@ -110,3 +111,35 @@ def save_npz_atomic(path: Path | str, arrays: dict[str, Any]) -> None:
     import numpy as np
 
     atomic_write(path, lambda fh: np.savez(fh, **arrays))
+
+
+def read_npz(path: Path | str) -> dict[str, Any]:
+    """Every array of the ``.npz`` file ``path``, read in full (so a truncated or corrupt
+    member is found now, not on first use). Raises ``ValueError`` with a one-line reason
+    that does not repeat the path (the caller names the file): not an ``.npz`` archive,
+    truncated or corrupt, or holding pickled objects. ``OSError`` (no such file,
+    permission) propagates."""
+    import zipfile
+    import zlib
+
+    import numpy as np
+
+    path = Path(path)
+    with open(path, "rb") as fh:
+        head = fh.read(6)
+    if head.startswith(b"\x93NUMPY"):
+        raise ValueError("is a single .npy array, not an .npz archive")
+    if not head.startswith(b"PK"):
+        kind = "empty" if not head else "not an .npz archive (not a zip file)"
+        raise ValueError(f"is {kind}")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            return {k: data[k] for k in data.files}
+    except zipfile.BadZipFile as err:
+        raise ValueError(f"is truncated or corrupt ({err})") from None
+    except ValueError as err:
+        if "pickle" in str(err):
+            raise ValueError("holds Python objects (pickled data), not numeric arrays") from None
+        raise ValueError(f"is corrupt ({err})") from None
+    except (EOFError, zlib.error, KeyError, NotImplementedError) as err:
+        raise ValueError(f"is truncated or corrupt ({type(err).__name__}: {err})") from None

@@ -14,7 +14,7 @@ import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
-from typing import NoReturn
+from typing import Any, NoReturn
 
 import numpy as np
 
@@ -109,6 +109,25 @@ def _check_writable_file(path: Path) -> None:
 # ---------------------------------------------------------------------------------------
 
 
+def energy_error_line(summary: dict[str, Any]) -> str:
+    """``max X, final Y`` of a run's relative energy error; for a failed run the max is
+    over the steps before the failure, and what was not measured reads ``n/a``."""
+    failed = summary["result"] != 0
+    where = f"failed at step {summary.get('failed_step', '?')}"
+
+    def fmt(value: float) -> str:
+        return f"{value:.3e}" if math.isfinite(value) else f"n/a ({where})"
+
+    emax = summary["energy_error_max"]
+    text = f"max {fmt(emax)}"
+    if failed and math.isfinite(emax):
+        text += f" before the failure ({where})"
+    final = summary["energy_error_final"]
+    if failed or not math.isfinite(final):
+        return text + ", final n/a"
+    return text + f", final {fmt(final)}"
+
+
 def cmd_simulate(args: argparse.Namespace) -> int:
     from .diagnostics import summarize
     from .scenes import get_scene
@@ -169,8 +188,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
             f"{scene.name} / {method.describe()}: {n_steps} steps of {args.dt:g} "
             f"in {timing['run_s']:.3g} s ({timing['steps_per_second']:.3g} steps/s, "
             f"compiled in {timing['compile_s']:.3g} s)\n"
-            f"relative energy error: max {summary['energy_error_max']:.3e}, "
-            f"final {summary['energy_error_final']:.3e}\n"
+            f"relative energy error: {energy_error_line(summary)}\n"
             f"wrote {out} ({len(arrays['t'])} saved states)"
         )
     if summary["result"] != 0:
@@ -264,6 +282,9 @@ def cmd_sweep(args: argparse.Namespace) -> int:
         if not quiet:
             print(msg, file=sys.stderr)
 
+    def warn(msg: str) -> None:  # repairs of a damaged folder: said even with --json
+        print(f"{PROG} sweep: {msg}", file=sys.stderr)
+
     devices = jax.devices()
     log(f"{scene.name}: {config.n} initial conditions x {len(config.methods)} method(s) x "
         f"{len(config.dts)} step(s) on {len(devices)} {devices[0].platform} device(s)")
@@ -277,7 +298,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
             return with_chord_matrix(scene.method(name), config.chord)
 
         summary = run_sweep(config, model, state0, make_method, Path(args.out),
-                            resume=args.resume, progress=not quiet, log=log)
+                            resume=args.resume, progress=not quiet, log=log, warn=warn)
     except SweepError as err:
         raise UsageError(str(err)) from None
     except KeyboardInterrupt:
@@ -291,7 +312,9 @@ def cmd_sweep(args: argparse.Namespace) -> int:
         print((Path(args.out) / "summary.md").read_text(), end="")
         print(f"wrote {args.out}/ (manifest.json, chunks/, trajectories.csv, summary.json, "
               f"summary.md, energy_error.png); {summary['chunks_computed']} chunk(s) "
-              f"computed, {summary['chunks_skipped']} resumed")
+              f"computed, {summary['chunks_skipped']} resumed"
+              + (f", {summary['chunks_repaired']} of them repaired"
+                 if summary.get("chunks_repaired") else ""))
     if failed:
         print(f"{PROG} sweep: {failed} trajectories failed (flagged in trajectories.csv)",
               file=sys.stderr)

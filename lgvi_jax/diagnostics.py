@@ -63,7 +63,10 @@ def rk4_energy_factor(y: float, n_steps: int) -> float:
 def summarize(traj: Any) -> dict[str, Any]:
     """Plain-Python summary of a (concrete, unbatched) :class:`~lgvi_jax.Trajectory`."""
     err = relative_energy_error(traj.energy)
-    finite = np.isfinite(err)
+    # The maxima are taken over the saved states after the initial one (whose error and
+    # drifts are 0 by definition) that are finite: a run that fails at its first step has
+    # none, and reports NaN, never a misleading 0.
+    finite = np.isfinite(err[1:])
     code = int(np.asarray(traj.result))
     try:
         result_name = RESULTS(code).name
@@ -73,7 +76,7 @@ def summarize(traj: Any) -> dict[str, Any]:
         "n_steps": int(traj.n_steps),
         "dt": float(np.asarray(traj.dt)),
         "saved": int(np.shape(traj.t)[0]),
-        "energy_error_max": float(np.max(err[finite])) if finite.any() else float("nan"),
+        "energy_error_max": float(np.max(err[1:][finite])) if finite.any() else float("nan"),
         "energy_error_final": float(err[-1]),
         "result": code,
         "result_name": result_name,
@@ -87,7 +90,7 @@ def summarize(traj: Any) -> dict[str, Any]:
         if name == "energy":
             continue
         values = np.asarray(values, dtype=np.float64)
-        dev = np.abs(values - values[:1]).reshape(len(values), -1)
+        dev = np.abs(values - values[:1]).reshape(len(values), -1)[1:]
         ok = np.all(np.isfinite(dev), axis=1)
         out[f"{name}_drift_max"] = float(np.max(dev[ok])) if ok.any() else float("nan")
     R = getattr(traj.state, "R", None)

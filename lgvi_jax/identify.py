@@ -174,11 +174,15 @@ def check_observations(data: Mapping[str, Any], dt: float, *,
 
 def load_observations(path, dt: float) -> Observations:
     """Read and validate an ``.npz`` of observations (:func:`check_observations`)."""
+    from ._io import read_npz
+
     try:
-        with np.load(path, allow_pickle=False) as data:
-            arrays = {k: data[k] for k in data.files}
-    except (OSError, ValueError) as err:
-        raise ValueError(f"{path}: cannot read observations: {err}") from None
+        arrays = read_npz(path)
+    except OSError as err:
+        raise ValueError(f"{path}: cannot read observations: {err.strerror or err}") from None
+    except ValueError as err:
+        raise ValueError(f"{path}: cannot read observations: the file {err} (expected an "
+                         ".npz with t, R, q, R0, omega0, q0, v0)") from None
     return check_observations(arrays, dt, source=str(path))
 
 

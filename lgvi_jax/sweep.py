@@ -31,7 +31,7 @@ end, over the steps before any failure):
 
 ``energy_error_max``, ``energy_error_final``
     max and final :math:`|H - H_0| / |H_0|` (absolute if :math:`H_0 = 0`); final is NaN for
-    a failed trajectory.
+    a failed trajectory, and every max is NaN for one that fails before its first sample.
 ``<invariant>_drift_max``
     for every other invariant of the model (momentum maps), the max over time and
     components of :math:`|I - I_0|`.
@@ -270,6 +270,9 @@ def _sweep_one(model, method, state0, dt, n_steps, sample_every):
         return out
 
     zero_metrics = jax.tree.map(jnp.zeros_like, measure(state0))
+    # The maxima start at NaN (fmax ignores it): a trajectory that fails before its first
+    # sample records NaN, not a misleading 0.
+    nan_metrics = jax.tree.map(lambda x: jnp.full_like(x, jnp.nan), zero_metrics)
     int0 = jnp.asarray(0, jnp.int32)
 
     def body(k, carry):
@@ -285,7 +288,7 @@ def _sweep_one(model, method, state0, dt, n_steps, sample_every):
         def update(args):
             maxima, last = args
             m = measure(state)
-            maxima = jax.tree.map(lambda a, b: jnp.where(ok, jnp.maximum(a, b), a), maxima, m)
+            maxima = jax.tree.map(lambda a, b: jnp.where(ok, jnp.fmax(a, b), a), maxima, m)
             last = jax.tree.map(lambda b: jnp.where(ok, b, jnp.nan), m)
             return maxima, last
 
@@ -294,7 +297,7 @@ def _sweep_one(model, method, state0, dt, n_steps, sample_every):
                 jnp.maximum(it_max, iters), maxima, last)
 
     init = (state0, jnp.asarray(RESULTS.successful, jnp.int32), jnp.asarray(-1, jnp.int32),
-            jnp.zeros((), ftype), int0, int0, zero_metrics, zero_metrics)
+            jnp.zeros((), ftype), int0, int0, nan_metrics, zero_metrics)
     carry = jax.lax.fori_loop(int0, n_steps, body, init)
     _, code, failed_step, _, it_sum, it_max, maxima, last = carry
     steps_done = jnp.where(failed_step >= 0, failed_step + 1, n_steps)
@@ -439,6 +442,22 @@ def run_batch(model, method, states, dt: float, n_steps: int, *, sample_every: i
 # ---------------------------------------------------------------------------------------
 
 
+#: Test hook (never set in normal use): ``LGVI_JAX_TEST_KILL_AFTER_CHUNK=k`` makes the
+#: process kill itself with SIGKILL right after writing the k-th chunk (0-based) of this
+#: run, so that a test interrupts a sweep at a known point instead of racing it.
+KILL_HOOK_ENV = "LGVI_JAX_TEST_KILL_AFTER_CHUNK"
+
+
+def _test_kill_hook(written: int) -> None:
+    value = os.environ.get(KILL_HOOK_ENV)
+    if value is not None and value.strip() == str(written):
+        import signal
+
+        if hasattr(signal, "SIGKILL"):
+            os.kill(os.getpid(), signal.SIGKILL)
+        os._exit(137)  # no SIGKILL (Windows): exit at once, no clean-up either
+
+
 def _chunk_plan(config: SweepConfig) -> list[dict[str, Any]]:
     plan = []
     for method in config.methods:
@@ -451,18 +470,86 @@ def _chunk_plan(config: SweepConfig) -> list[dict[str, Any]]:
     return plan
 
 
-def _chunk_ok(path: Path, expected: int) -> bool:
+#: Fields of every chunk, whatever the model (plus ``<invariant>_drift_max`` and, on
+#: SO(3), ``orthogonality_error_max``).
+_CORE_FIELDS = ("index", "energy_error_max", "energy_error_final", "newton_mean",
+                "newton_max", "result", "failed_step")
+
+
+def _expected_fields(model, state0) -> set[str]:
+    """The fields a chunk of this model holds (the keys :func:`_sweep_one` returns)."""
+    names = {f"{k}_drift_max" for k in model.invariants(state0) if k != "energy"}
+    if hasattr(state0, "R"):
+        names.add("orthogonality_error_max")
+    return set(_CORE_FIELDS) | names
+
+
+def _read_chunk(path: Path, spec: dict[str, Any],
+                fields: set[str] | None = None) -> tuple[dict[str, np.ndarray] | None, str]:
+    """``(arrays, "")`` for a sound chunk file, ``(None, reason)`` for a missing or damaged
+    one: unreadable, truncated or not an .npz, missing or unexpected fields (``fields``:
+    the exact set expected; else at least :data:`_CORE_FIELDS`), an array that is not one
+    number per trajectory, or trajectories other than ``spec``'s range."""
+    from ._io import read_npz
+
+    if not path.is_file():
+        return None, "missing" if not path.exists() else "not a file"
     try:
-        with np.load(path) as data:
-            return "index" in data and data["index"].shape == (expected,)
-    except (OSError, ValueError, EOFError):
-        return False
+        arrays = read_npz(path)
+    except OSError as err:
+        return None, f"unreadable: {err.strerror or err}"
+    except ValueError as err:
+        return None, str(err).removeprefix("is ")
+    count = spec["stop"] - spec["start"]
+    missing = sorted((fields or set(_CORE_FIELDS)) - set(arrays))
+    if missing:
+        return None, f"missing field(s) {', '.join(missing)}"
+    if fields is not None and set(arrays) - fields:
+        return None, f"unexpected field(s) {', '.join(sorted(set(arrays) - fields))}"
+    for k, v in arrays.items():
+        if v.shape != (count,) or v.dtype.kind not in "biuf":
+            return None, (f"field {k} is {v.dtype} of shape {v.shape}, expected {count} "
+                          "numbers")
+    if not np.array_equal(arrays["index"], np.arange(spec["start"], spec["stop"])):
+        return None, f"holds other trajectories than {spec['start']}..{spec['stop'] - 1}"
+    return arrays, ""
 
 
-def prepare_out_dir(out: Path, config: SweepConfig, resume: bool) -> dict[str, Any]:
+def _read_manifest(path: Path) -> tuple[dict[str, Any] | None, str]:
+    """``(manifest, "")``, or ``(None, reason)`` if ``path`` is unreadable, not JSON, or
+    not a sweep manifest."""
+    try:
+        old = json.loads(path.read_text())
+    except OSError as err:
+        return None, f"unreadable: {err.strerror or err}"
+    except (UnicodeDecodeError, ValueError) as err:
+        return None, f"not valid JSON: {err}"
+    if not isinstance(old, dict) or old.get("format") != FORMAT["format"]:
+        return None, "not an lgvi-jax sweep manifest"
+    if not isinstance(old.get("config"), dict) or not isinstance(old.get("chunks"), list):
+        return None, "it has no configuration or chunk list"
+    return old, ""
+
+
+def _stray_temporaries(out: Path) -> list[Path]:
+    """Temporary files of interrupted atomic writes (``.<name>.<random>.tmp``)."""
+    from ._io import TEMP_SUFFIX
+
+    found = []
+    for folder in (out, out / "chunks"):
+        if folder.is_dir():
+            found += sorted(p for p in folder.glob(f".*{TEMP_SUFFIX}") if p.is_file())
+    return found
+
+
+def prepare_out_dir(out: Path, config: SweepConfig, resume: bool,
+                    warn: Callable[[str], None] | None = None) -> dict[str, Any]:
     """Create or check the output folder; return the manifest. Raises :class:`SweepError`
-    for an unwritable folder, a folder holding another sweep, or a ``resume`` whose
-    configuration differs from the one on disk."""
+    (one line naming the file and what to do) for an unwritable folder, a folder holding
+    another sweep, a ``resume`` whose configuration differs from the one on disk, and a
+    damaged manifest or chunks without a manifest (the chunks cannot then be matched to a
+    configuration). On ``resume``, stray temporary files of interrupted writes are removed
+    (each reported through ``warn``)."""
     try:
         out.mkdir(parents=True, exist_ok=True)
         (out / "chunks").mkdir(exist_ok=True)
@@ -473,46 +560,91 @@ def prepare_out_dir(out: Path, config: SweepConfig, resume: bool) -> dict[str, A
     manifest_path = out / "manifest.json"
     manifest = {**FORMAT, "config": config.to_json(), "fields": _FIELD_DOCS,
                 "chunks": _chunk_plan(config)}
+    start_over = (f"delete {manifest_path} and {out / 'chunks'} to start over, or choose "
+                  "another folder")
     if manifest_path.exists():
-        try:
-            old = json.loads(manifest_path.read_text())
-        except (OSError, ValueError):
-            old = None
+        old, reason = _read_manifest(manifest_path)
+        if old is None:
+            raise SweepError(f"{manifest_path} is damaged ({reason}), so the chunks beside "
+                             f"it cannot be matched to a configuration: {start_over}")
         if not resume:
             raise SweepError(f"--out {out}: already holds a sweep (manifest.json); pass "
                              "--resume to continue it, or choose another folder")
-        if old is None or old.get("config") != manifest["config"]:
-            old_cfg = (old or {}).get("config", {})
+        if old["config"] != manifest["config"]:
+            old_cfg = old["config"]
             diffs = [k for k in manifest["config"] if old_cfg.get(k) != manifest["config"][k]]
             raise SweepError(f"--resume: the sweep in {out} was started with a different "
                              f"configuration (differs in: {', '.join(diffs) or 'format'}); "
                              "use the same arguments or another folder")
-    atomic_write_json(manifest_path, manifest)
+    elif resume:
+        chunks = sorted((out / "chunks").glob("*.npz"))
+        if chunks:
+            raise SweepError(f"--resume: {manifest_path} is missing but {out / 'chunks'} "
+                             f"holds {len(chunks)} chunk file(s) that cannot be matched to a "
+                             f"configuration: {start_over}")
+    if resume:
+        for tmp in _stray_temporaries(out):
+            try:
+                tmp.unlink()
+            except OSError as err:
+                raise SweepError(f"--resume: cannot remove the stray temporary file {tmp} "
+                                 f"({err.strerror}); remove it by hand") from None
+            if warn:
+                warn(f"removed {tmp.relative_to(out)}: a temporary file left by an "
+                     "interrupted write")
+    try:
+        atomic_write_json(manifest_path, manifest)
+    except OSError as err:
+        raise SweepError(f"--out {out}: cannot write {manifest_path.name}: "
+                         f"{err.strerror or err}") from None
     return manifest
 
 
 def run_sweep(config: SweepConfig, model, state0, make_method: Callable[[str], Any],
               out: Path | str, *, resume: bool = False, progress: bool = True,
               devices: Sequence | None = None,
-              log: Callable[[str], None] | None = None) -> dict[str, Any]:
+              log: Callable[[str], None] | None = None,
+              warn: Callable[[str], None] | None = None) -> dict[str, Any]:
     """Run (or resume) a sweep into the folder ``out``; return the summary.
 
     ``make_method(name)`` builds an integrator. Finished chunks are skipped when
-    ``resume`` is true. ``progress`` draws a bar on a terminal. Returns the summary dict
-    also written to ``summary.json`` (per method and step: energy-error quantiles, failures,
-    Newton iterations, throughput) plus ``"chunks_computed"`` and ``"chunks_skipped"``.
+    ``resume`` is true; damaged ones (truncated, corrupt, wrong fields or trajectories) are
+    recomputed, and stray temporary files removed, each reported in one line through
+    ``warn`` (default: ``log``, else :func:`warnings.warn`). A damaged manifest or chunks
+    without one raise :class:`SweepError`. ``progress`` draws a bar on a terminal. Returns
+    the summary dict also written to ``summary.json`` (per method and step: energy-error
+    quantiles, failures, Newton iterations, throughput) plus ``"chunks_computed"``,
+    ``"chunks_skipped"`` and ``"chunks_repaired"``.
     """
+    if warn is None:
+        if log is not None:
+            warn = log
+        else:
+            import warnings
+
+            def warn(msg: str) -> None:
+                warnings.warn(msg, stacklevel=3)
+
     out = Path(out)
     config.validate()
-    manifest = prepare_out_dir(out, config, resume)
+    manifest = prepare_out_dir(out, config, resume, warn=warn)
     devices = tuple(jax.devices() if devices is None else devices)
     n_dev = len(devices)
     batch = math.ceil(config.chunk / n_dev) * n_dev  # padded chunk shape, fixed
     batch = min(batch, math.ceil(config.n / n_dev) * n_dev)
 
     plan = manifest["chunks"]
-    todo = [c for c in plan if not (resume and _chunk_ok(out / c["file"],
-                                                          c["stop"] - c["start"]))]
+    todo, repaired = plan, 0
+    if resume:
+        fields = _expected_fields(model, state0)
+        todo = []
+        for c in plan:
+            arrays, reason = _read_chunk(out / c["file"], c, fields)
+            if arrays is None:
+                todo.append(c)
+                if reason != "missing":
+                    repaired += 1
+                    warn(f"chunk {c['file']} is damaged ({reason}): recomputing it")
     skipped = len(plan) - len(todo)
     n_traj = sum(c["stop"] - c["start"] for c in plan)
     bar = Progress(n_traj, label=f"sweep {config.system}", unit="traj", enabled=progress)
@@ -523,7 +655,7 @@ def run_sweep(config: SweepConfig, model, state0, make_method: Callable[[str], A
     timings: dict[str, float] = {}
     methods = {}
     try:
-        for c in todo:
+        for i, c in enumerate(todo):
             name = c["method"]
             if name not in methods:
                 methods[name] = make_method(name)
@@ -537,7 +669,14 @@ def run_sweep(config: SweepConfig, model, state0, make_method: Callable[[str], A
             timings[key] = timings.get(key, 0.0) + time.perf_counter() - start
             arrays = {k: v[:count] for k, v in res.items()}
             arrays["index"] = np.arange(c["start"], c["stop"], dtype=np.int64)
-            save_npz_atomic(out / c["file"], arrays)
+            try:
+                save_npz_atomic(out / c["file"], arrays)
+            except OSError as err:
+                raise SweepError(f"cannot write {out / c['file']}: {err.strerror or err}; fix "
+                                 "that (free disk space, remove what is in the way), then "
+                                 "rerun with --resume"
+                                 ) from None
+            _test_kill_hook(i)
             bar.advance(count)
     finally:
         bar.close()
@@ -545,6 +684,7 @@ def run_sweep(config: SweepConfig, model, state0, make_method: Callable[[str], A
     summary = summarize_sweep(config, results)
     summary["chunks_computed"] = len(todo)
     summary["chunks_skipped"] = skipped
+    summary["chunks_repaired"] = repaired
     summary["devices"] = [str(d) for d in devices]
     summary["wall_time_s_by_method_dt"] = timings
     _write_outputs(out, config, results, summary)
@@ -553,17 +693,31 @@ def run_sweep(config: SweepConfig, model, state0, make_method: Callable[[str], A
 
 def load_results(out: Path | str) -> dict[tuple[str, float], dict[str, np.ndarray]]:
     """Read every chunk of a sweep folder: ``{(method, dt): {field: array over i}}``,
-    rows in trajectory order. Raises :class:`SweepError` if a chunk is missing."""
+    rows in trajectory order. Raises :class:`SweepError` (one line naming the file) if the
+    manifest is missing or damaged, or a chunk is missing or damaged."""
     out = Path(out)
-    manifest = json.loads((out / "manifest.json").read_text())
+    manifest_path = out / "manifest.json"
+    if not manifest_path.is_file():
+        raise SweepError(f"{out}: no manifest.json; not a sweep folder")
+    manifest, reason = _read_manifest(manifest_path)
+    if manifest is None:
+        raise SweepError(f"{manifest_path} is damaged ({reason}); rerun the sweep into "
+                         "another folder")
     grouped: dict[tuple[str, float], list[dict[str, np.ndarray]]] = {}
+    fields: set[str] | None = None
     for c in manifest["chunks"]:
-        path = out / c["file"]
-        if not path.exists():
-            raise SweepError(f"{out}: chunk {c['file']} is missing (run with --resume)")
-        with np.load(path) as data:
-            grouped.setdefault((c["method"], c["dt"]), []).append(
-                {k: data[k] for k in data.files})
+        try:
+            arrays, reason = _read_chunk(out / c["file"], c, fields)
+        except (KeyError, TypeError):
+            raise SweepError(f"{manifest_path} is damaged (a chunk entry is malformed); "
+                             "rerun the sweep into another folder") from None
+        if arrays is None:
+            raise SweepError(f"{out}: chunk {c['file']} is {reason} (run the same sweep "
+                             "command with --resume to recompute it)" if reason == "missing"
+                             else f"{out}: chunk {c['file']} is damaged ({reason}); run the "
+                             "same sweep command with --resume to recompute it")
+        fields = set(arrays)  # every chunk holds the same fields as the first
+        grouped.setdefault((c["method"], c["dt"]), []).append(arrays)
     return {key: {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
             for key, parts in grouped.items()}
 
@@ -603,10 +757,15 @@ def _write_outputs(out: Path, config: SweepConfig, results, summary) -> None:
              "that did not fail).", "",
              "| method | dt | failed | median | p95 | max | Newton its/step |",
              "|---|---|---|---|---|---|---|"]
+    def fmt(x: float, spec: str) -> str:  # n/a: every trajectory of the row failed
+        return format(x, spec) if math.isfinite(x) else "n/a"
+
     for row in summary["rows"]:
         lines.append(f"| {row['method']} | {row['dt']:g} | {row['failed']}/{row['n']} | "
-                     f"{row['energy_error_max_median']:.3e} | {row['energy_error_max_p95']:.3e}"
-                     f" | {row['energy_error_max_max']:.3e} | {row['newton_mean']:.2f} |")
+                     f"{fmt(row['energy_error_max_median'], '.3e')} | "
+                     f"{fmt(row['energy_error_max_p95'], '.3e')} | "
+                     f"{fmt(row['energy_error_max_max'], '.3e')} | "
+                     f"{fmt(row['newton_mean'], '.2f')} |")
     atomic_write_text(out / "summary.md", "\n".join(lines) + "\n")
     _plot(out / "energy_error.png", config, results)
 
