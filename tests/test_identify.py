@@ -172,8 +172,9 @@ def test_implicit_gradient_equals_unrolled_newton_gradient(gradient_setup):
     # Round-off of 10^3 steps (two different sequences of floating-point operations),
     # amplified by the sensitivity of the motion over 5 s: measured 2e-12.
     assert max(diffs) < 1e-10
-    # Not trivially equal: the unrolled solve really is a different computation.
-    assert unrolled.newton.adjoint == "unrolled"
+    # Not trivially equal: the unrolled solve really is a different computation (two
+    # different sequences of operations over 10^3 steps never agree to the last bit).
+    assert max(diffs) > 0
 
 
 def test_unrolled_adjoint_reports_failure_and_keeps_the_default_unchanged():
@@ -232,8 +233,13 @@ def test_inertia_recovered_from_the_papers_start(clean_data, noisy_data, noisy, 
     start_error = rel_error(centroidal_inertia(lj.CarPendulum().J, 1.0, PAPER_RHO_C))
     assert start_error > 0.15  # the start is far from the truth (20%)
     assert rel_error(result.J_c) <= tolerance
-    assert result.iterations <= 300
+    # Converged well before the cap: one loss per iteration (and the start), the loss
+    # brought down by orders of magnitude from the 20%-wrong start.
     assert result.stopped == "converged"
+    assert 1 <= result.iterations < 300
+    assert len(result.loss_history) == result.iterations + 1
+    assert result.loss_history[0] == result.loss_initial
+    assert result.loss_history[-1] == result.loss_final < 1e-2 * result.loss_initial
     # The loss (mean squared error per observed coordinate) reaches the noise floor σ²
     # (plus the step's own error, ~5e-8 at this step): nothing systematic is left.
     floor = 1e-6 if noisy else 0.0
@@ -355,6 +361,10 @@ def test_fit_command_writes_the_fit(clean_data, tmp_path, capsys):
     assert J.shape == (3, 3) and is_physical(J)
     assert rel_error(centroidal_inertia(J, 1.0, PAPER_RHO_C)) <= 0.01
     assert rel_error(fit["values"]["J_c"]) <= 0.01
-    assert fit["iterations"] == len(fit["loss_history"]) - 1 <= 300
+    assert 1 <= fit["iterations"] < 300 and fit["stopped"] == "converged"
+    assert fit["iterations"] == len(fit["loss_history"]) - 1
+    assert fit["loss_history"][0] == fit["loss_initial"]
+    assert fit["loss_history"][-1] == fit["loss_final"]
+    assert fit["method"] == "lgvi" and fit["optimizer"] == "gauss-newton" and fit["dt"] == 0.01
     assert fit["wall_time_s"] > 0 and fit["fitted"] == ["J"] and fit["init"] == {"m": [1.0]}
     assert fit["loss_final"] < 1e-2 * fit["loss_initial"]

@@ -128,9 +128,16 @@ def test_car_pendulum_invariants_and_centre():
     centre = model.pendulum_centre(s)
     np.testing.assert_allclose(centre, [-0.125 + 0.25, -0.0125 - 1.0, 0.25], atol=1e-15)
     # Batched over a trajectory axis.
+    # Batched over a trajectory axis: each row is the unbatched value.
     batch = jax.tree.map(lambda x: jnp.stack([x, x]), s)
-    assert model.pendulum_centre(batch).shape == (2, 3)
-    assert model.spatial_angular_momentum(batch).shape == (2, 3)
+    np.testing.assert_array_equal(model.pendulum_centre(batch), np.stack([centre, centre]))
+    single = np.asarray(model.spatial_angular_momentum(s))
+    # R mu, the body's angular momentum in the inertial frame (3 products per entry).
+    np.testing.assert_allclose(single, np.asarray(s.R) @ np.asarray(s.mu), rtol=1e-14,
+                               atol=1e-15)
+    assert np.abs(single).max() > 0.1
+    np.testing.assert_allclose(model.spatial_angular_momentum(batch),
+                               np.stack([single, single]), rtol=1e-15, atol=0)
 
 
 @pytest.mark.parametrize(

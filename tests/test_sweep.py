@@ -7,7 +7,6 @@ import os
 import signal
 import subprocess
 import sys
-import time
 
 import equinox as eqx
 import jax
@@ -20,7 +19,14 @@ from lgvi_jax import so3
 from lgvi_jax.cli import main
 from lgvi_jax.diagnostics import rk4_energy_factor, summarize
 from lgvi_jax.scenes import get_scene
-from lgvi_jax.sweep import SweepConfig, SweepError, initial_conditions, run_batch, run_sweep
+from lgvi_jax.sweep import (
+    KILL_HOOK_ENV,
+    SweepConfig,
+    SweepError,
+    initial_conditions,
+    run_batch,
+    run_sweep,
+)
 
 DT = 5e-3
 N_STEPS = 200
@@ -182,27 +188,32 @@ def _csv_rows(path):
     return sorted(csv.reader(open(path)))
 
 
+#: Each child sweep takes ~10-30 s on a loaded 2-core machine; a hung child fails the test
+#: after this long instead of blocking the suite.
+CHILD_TIMEOUT_S = 300
+
+
+def _run(args, **kwargs):
+    return subprocess.run(args, capture_output=True, text=True, timeout=CHILD_TIMEOUT_S,
+                          **kwargs)
+
+
 def test_resume_after_kill_matches_uninterrupted_run(tmp_path):
     killed, clean = tmp_path / "killed", tmp_path / "clean"
-    proc = subprocess.Popen(_sweep_args(killed), stdout=subprocess.DEVNULL,
-                            stderr=subprocess.PIPE)
     chunks = killed / "chunks"
-    deadline = time.time() + 120
-    while time.time() < deadline and proc.poll() is None:
-        done = list(chunks.glob("*.npz")) if chunks.exists() else []
-        if len(done) >= 2:
-            break
-        time.sleep(0.01)
-    os.kill(proc.pid, signal.SIGKILL)  # no chance to clean up
-    proc.wait()
+    # The child kills itself with SIGKILL (no chance to clean up) right after writing its
+    # 5th chunk: a deterministic interruption mid-sweep, no polling race.
+    env = {**os.environ, KILL_HOOK_ENV: "4"}
+    child = _run(_sweep_args(killed), env=env)
+    assert child.returncode == -signal.SIGKILL, child.stderr
     before = {p.name: p.stat().st_mtime_ns for p in chunks.glob("*.npz")}
-    assert 2 <= len(before) < 12, "the kill must land mid-sweep"
+    assert len(before) == 5, sorted(before)
     assert not (killed / "trajectories.csv").exists()
 
     # Without --resume the folder is refused; with it, finished chunks are kept as they are.
-    again = subprocess.run(_sweep_args(killed), capture_output=True, text=True)
+    again = _run(_sweep_args(killed))
     assert again.returncode == 2 and "--resume" in again.stderr
-    resumed = subprocess.run(_sweep_args(killed, ["--resume"]), capture_output=True, text=True)
+    resumed = _run(_sweep_args(killed, ["--resume"]))
     assert resumed.returncode == 0, resumed.stderr
     summary = json.loads(resumed.stdout)
     assert summary["chunks_skipped"] == len(before)
@@ -210,13 +221,12 @@ def test_resume_after_kill_matches_uninterrupted_run(tmp_path):
     for name, mtime in before.items():
         assert (chunks / name).stat().st_mtime_ns == mtime, f"{name} was recomputed"
 
-    full = subprocess.run(_sweep_args(clean), capture_output=True, text=True)
+    full = _run(_sweep_args(clean))
     assert full.returncode == 0, full.stderr
     assert _csv_rows(killed / "trajectories.csv") == _csv_rows(clean / "trajectories.csv")
 
     # A resume with other arguments is refused, naming what differs.
-    other = subprocess.run(_sweep_args(killed, ["--resume", "--seed", "6"]),
-                           capture_output=True, text=True)
+    other = _run(_sweep_args(killed, ["--resume", "--seed", "6"]))
     assert other.returncode == 2 and "seed" in other.stderr
 
 

