@@ -63,6 +63,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
+from . import scalarize as sc
+
 __all__ = [
     "RESULTS",
     "ChordInverse",
@@ -138,6 +140,12 @@ class Newton(eqx.Module):
             iterations (``chord``, ``chord_steps`` and ``unroll`` are ignored), differentiated
             through by autodiff; the result code says whether the last update met the
             tolerance. For testing the implicit rule.
+        scalar: run the iteration on scalars (:mod:`lgvi_jax.scalarize`): the residual, its
+            Jacobian, the pivoted Gauss–Jordan inverse and the updates are emitted as scalar
+            elementwise operations, so that XLA fuses an iteration into a few kernels (a
+            structure of arrays under ``vmap``). Same iterates as the array form to the
+            order of floating-point sums, same implicit derivatives. Plain Newton or
+            ``chord_steps``; no given chord matrix.
     """
 
     rtol: float = 1e-12
@@ -149,8 +157,13 @@ class Newton(eqx.Module):
     broyden: bool = eqx.field(static=True, default=False)
     unroll: int = eqx.field(static=True, default=0)
     adjoint: str = eqx.field(static=True, default="implicit")
+    scalar: bool = eqx.field(static=True, default=False)
 
     def __check_init__(self):
+        if self.scalar and (self.chord or self.broyden or self.unroll
+                            or self.adjoint != "implicit"):
+            raise ValueError("Newton: scalar=True supports Newton and chord_steps (no chord, "
+                             "broyden, unroll or unrolled adjoint)")
         if self.adjoint not in ("implicit", "unrolled"):
             raise ValueError(
                 f"Newton: adjoint must be 'implicit' or 'unrolled', got {self.adjoint!r}"
@@ -633,7 +646,11 @@ def newton_solve(
             )
         return out_flat
 
-    if solver.adjoint == "unrolled":
+    if solver.scalar:
+        if jac0 is not None:
+            raise ValueError("newton_solve: Newton(scalar=True) takes no chord matrix jac0")
+        y, result, k, res = _scalar_core(flat_fn, solver, y0_flat, args)
+    elif solver.adjoint == "unrolled":
         y, result, k, res = _iterate_unrolled(
             functools.partial(flat_fn, args=args), y0_flat, solver
         )
@@ -669,3 +686,176 @@ def raise_if_failed(sol: NewtonSolution) -> NewtonSolution:
             f"residual {float(np.max(np.asarray(sol.residual))):.3e})"
         )
     return sol
+
+
+# ---------------------------------------------------------------------------------------
+# The iteration on scalars (Newton(scalar=True))
+# ---------------------------------------------------------------------------------------
+
+
+def _scalar_inverse(A: list[list[Any]]) -> list[list[Any]]:
+    """Inverse of a small matrix given as rows of scalars: Gauss–Jordan elimination with
+    partial pivoting, the row exchanges done by selects (no gathers), so that it is a
+    straight line of scalar operations. A singular matrix gives non-finite entries."""
+    m = len(A)
+    one, zero = sc.constant(1.0, np.float64), sc.constant(0.0, np.float64)
+    rows = [list(A[i]) + [one if j == i else zero for j in range(m)] for i in range(m)]
+    for k in range(m):
+        # The largest |a_ik| over i >= k; the first such row on ties, as argmax.
+        best, best_abs, takes = rows[k], sc.absolute(rows[k][k]), []
+        for i in range(k + 1, m):
+            cand = sc.absolute(rows[i][k])
+            take = sc.gt(cand, best_abs)
+            best = [sc.select(take, a, b) for a, b in zip(rows[i], best, strict=True)]
+            best_abs = sc.select(take, cand, best_abs)
+            takes.append(take)
+        # Row i >= k+1 is the pivot row if it was taken and no later row was.
+        later = sc.constant(False, np.bool_)
+        chosen = [None] * m
+        for i in reversed(range(k + 1, m)):
+            t = takes[i - k - 1]
+            chosen[i] = sc.logical_and(t, sc.logical_not(later))
+            later = sc.logical_or(later, t)
+        for i in range(k + 1, m):
+            rows[i] = [sc.select(chosen[i], a, b) for a, b in zip(rows[k], rows[i], strict=True)]
+        inv_pivot = sc.div(one, best[k])
+        pivot_row = [sc.mul(a, inv_pivot) for a in best]
+        rows[k] = pivot_row
+        for i in range(m):
+            if i == k:
+                continue
+            factor = rows[i][k]
+            rows[i] = [sc.sub(a, sc.mul(factor, b)) for a, b in zip(rows[i], pivot_row,
+                                                                       strict=True)]
+    return [row[m:] for row in rows]
+
+
+def _scalar_matvec(A, x):
+    out = []
+    for row in A:
+        acc = sc.constant(0.0, np.float64)
+        for a, b in zip(row, x, strict=True):
+            acc = sc.add(acc, sc.mul(a, b))
+        out.append(acc)
+    return out
+
+
+def _scalar_max(values, initial):
+    acc = initial
+    for v in values:
+        acc = sc.maximum(acc, v)
+    return acc
+
+
+def _rows(obj) -> list[list[Any]]:
+    return [list(obj[i]) for i in range(obj.shape[0])]
+
+
+def _iterate_scalar(fn, y0, args, solver: Newton):
+    """:func:`_iterate_chord_refresh` (``chord_steps > 0``) or plain Newton, written on
+    scalars. Returns (y, result, steps, residual) as arrays."""
+    dtype = y0.dtype
+    m = y0.shape[0]
+    res_fn = sc.ScalarFunction(fn, y0, args)
+    jac_fn = sc.ScalarFunction(jax.jacfwd(fn), y0, args)
+    args_s = jax.tree.map(sc.split, args)
+    chord_cap = min(solver.chord_steps, solver.max_steps)
+    inf = jnp.asarray(jnp.inf, dtype)
+    zero = sc.constant(0.0, dtype)
+    atol, rtol = sc.constant(solver.atol, dtype), sc.constant(solver.rtol, dtype)
+
+    def as_obj(y):
+        out = np.empty((m,), dtype=object)
+        for i, v in enumerate(y):
+            out[i] = v
+        return out
+
+    def update(y, J_inv, F, k, prev, newton, cap):
+        delta = [sc.neg(d) for d in _scalar_matvec(J_inv, F)]
+        res = _scalar_max([sc.absolute(f) for f in F], zero)
+        finite = sc.isfinite(res)
+        for d in delta:
+            finite = sc.logical_and(finite, sc.isfinite(d))
+        y_new = [sc.add(a, d) for a, d in zip(y, delta, strict=True)]
+        size = _scalar_max([sc.div(sc.absolute(d), sc.add(atol, sc.mul(rtol, sc.absolute(a))))
+                            for d, a in zip(delta, y_new, strict=True)], zero)
+        k = k + 1
+        stalled = jnp.where(newton, False, (k >= chord_cap) | (size > 0.5 * prev))
+        result = jnp.where(
+            ~finite, RESULTS.nonfinite,
+            jnp.where(size <= 1.0, RESULTS.successful,
+                      jnp.where(newton & (k >= cap), RESULTS.max_steps_reached, -1)),
+        ).astype(jnp.int32)
+        y_new = [jnp.where(finite, a, b) for a, b in zip(y_new, y, strict=True)]
+        return y_new, k, result, res, size, stalled
+
+    def F_of(y):
+        return list(res_fn(as_obj(y), args_s))
+
+    def J_of(y):
+        return _rows(jac_fn(as_obj(y), args_s))
+
+    def outer_body(carry):
+        y, k, _, _, newton, cap = carry
+        J_inv = _scalar_inverse(J_of(list(y)))
+        y, k, result, res, size, stalled = update(list(y), J_inv, F_of(list(y)), k, inf,
+                                                  newton, cap)
+
+        def inner_cond(c):
+            return (c[2] < 0) & ~c[5]
+
+        def inner_body(c):
+            y, k, _, _, prev, _ = c
+            y, k, result, res, size, stalled = update(list(y), J_inv, F_of(list(y)), k, prev,
+                                                      newton, cap)
+            return tuple(y), k, result, res, size, stalled
+
+        y, k, result, res, _, stalled = jax.lax.while_loop(
+            inner_cond, inner_body, (tuple(_jnp(v, dtype) for v in y), k, result,
+                                     _jnp(res, dtype), _jnp(size, dtype), stalled | newton))
+        fallback = ~newton & (result < 0)
+        y = tuple(jnp.where(fallback, a, b) for a, b in zip(y0_s, y, strict=True))
+        cap = jnp.where(fallback, k + solver.max_steps, cap)
+        return y, k, result, res, newton | fallback, cap
+
+    y0_s = tuple(_jnp(v, dtype) for v in sc.split(y0))
+    zero_i = jnp.asarray(0, jnp.int32)
+    start_newton = solver.chord_steps == 0
+    init = (y0_s, zero_i, jnp.asarray(-1, jnp.int32), inf, jnp.asarray(start_newton),
+            jnp.asarray(solver.max_steps, jnp.int32))
+    y, k, result, res, _, _ = jax.lax.while_loop(lambda c: c[2] < 0, outer_body, init)
+    return jnp.stack(y), result, k, res
+
+
+def _jnp(v, dtype):
+    return jnp.asarray(np.asarray(v) if isinstance(v, np.generic) else v, dtype)
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0, 1))
+def _scalar_core(fn, solver, y0, args):
+    return _iterate_scalar(fn, y0, args, solver)
+
+
+@_scalar_core.defjvp
+def _scalar_core_jvp(fn, solver, primals, tangents):
+    # The implicit function theorem, as in _newton_core_jvp, on scalars: J ẏ = −∂F/∂a ȧ.
+    y0, args = primals
+    _, args_dot = tangents
+    y, result, k, res = _scalar_core(fn, solver, y0, args)
+    jac_fn = sc.ScalarFunction(jax.jacfwd(fn), y, args)
+
+    def dF(y, a, a_dot):
+        return jax.jvp(lambda b: fn(y, b), (a,), (a_dot,))[1]
+
+    dF_fn = sc.ScalarFunction(dF, y, args, args_dot)
+    y_s, a_s, ad_s = sc.split(y), jax.tree.map(sc.split, args), jax.tree.map(sc.split, args_dot)
+    J_inv = _scalar_inverse(_rows(jac_fn(y_s, a_s)))
+    y_dot = [sc.neg(v) for v in _scalar_matvec(J_inv, list(dF_fn(y_s, a_s, ad_s)))]
+    y_dot = jnp.stack([_jnp(v, y.dtype) for v in y_dot])
+    float0 = jax.dtypes.float0
+    return (y, result, k, res), (
+        y_dot,
+        np.zeros(result.shape, float0),
+        np.zeros(k.shape, float0),
+        jnp.zeros_like(res),
+    )

@@ -66,7 +66,8 @@ import jax.numpy as jnp
 
 from .. import so3
 from ..models.rigid import AbstractRigidBodyModel, RigidState
-from ..newton import ChordInverse, Newton, newton_solve, spd_inverse
+from ..newton import ChordInverse, Newton, newton_solve, spd_inverse, spd_solve
+from ..scalarize import scalarize
 from .base import AbstractIntegrator, StepInfo
 
 __all__ = ["LGVI", "AbstractLieVI", "HamelVI"]
@@ -189,9 +190,22 @@ class AbstractLieVI(AbstractIntegrator):
         """One step with Newton started from ``guess = (ξ, u)`` (default: the current
         velocities). Returns the new state, the step info and the solution ``(ξ, u)``, so
         that a composition can warm-start its next sub-step from it. The guess changes only
-        the Newton iterates, not the solution."""
+        the Newton iterates, not the solution.
+
+        With ``Newton(scalar=True)`` (and the exact chord matrix) the guess, the Newton
+        iteration and the new momenta are evaluated on scalars (:mod:`lgvi_jax.scalarize`):
+        the same arithmetic, emitted as elementwise operations that XLA fuses."""
         R0, mu0, q0, p0 = state.R, state.mu, state.q, state.p
         h = jnp.asarray(dt, R0.dtype)
+        args = (model, R0, mu0, q0, p0, h)
+        fast = self.newton.scalar and self.chord_matrix == "exact"
+        if fast:
+            if guess is None:
+                guess = scalarize(self._initial_guess)(model, R0, mu0, q0, p0)
+            sol = newton_solve(self._residual, guess, args, self.newton)
+            new_state = scalarize(self._finish)(model, R0, q0, p0, h, *sol.value)
+            return new_state, StepInfo.from_solution(sol), sol.value
+        solver = dataclasses.replace(self.newton, scalar=False)
         mass, at_rest = model.mass_matrix(R0, q0)
         # The kinetic-energy Hessian is symmetric positive definite: one pivot-free inverse
         # serves the initial guess and the mass chord (spd_inverse).
@@ -201,14 +215,23 @@ class AbstractLieVI(AbstractIntegrator):
             guess = (x[:3], x[3:])
         if self.chord_matrix == "mass":
             jac0 = ChordInverse(mass_inv)
-            solver = dataclasses.replace(self.newton,
-                                         chord_steps=max(self.newton.chord_steps, 20),
+            solver = dataclasses.replace(solver, chord_steps=max(solver.chord_steps, 20),
                                          broyden=True)
         else:
-            jac0, solver = None, self.newton
-        sol = newton_solve(self._residual, guess, (model, R0, mu0, q0, p0, h), solver,
-                           jac0=jac0)
-        xi, u = sol.value
+            jac0 = None
+        sol = newton_solve(self._residual, guess, args, solver, jac0=jac0)
+        new_state = self._finish(model, R0, q0, p0, h, *sol.value)
+        return new_state, StepInfo.from_solution(sol), sol.value
+
+    def _initial_guess(self, model, R0, mu0, q0, p0):
+        """The current velocities ``(ω_k, v_k)`` (inverse Legendre map)."""
+        mass, at_rest = model.mass_matrix(R0, q0)
+        x = spd_solve(mass, jnp.concatenate([mu0, p0]) - at_rest)
+        return x[:3], x[3:]
+
+    def _finish(self, model, R0, q0, p0, h, xi, u):
+        """The new state from the solution ``(ξ, u)``: the second pair of Legendre
+        transforms."""
         w = h * xi
         R1 = R0 @ self.tau(w)
         q1 = q0 + h * u
@@ -220,8 +243,7 @@ class AbstractLieVI(AbstractIntegrator):
         # invariance), so that momentum is conserved to the last bit instead of
         # accumulating the Newton residual.
         p1 = p0 + (gq0 + gq1)
-        new_state = RigidState(R=R1, mu=mu1, q=q1, p=p1)
-        return new_state, StepInfo.from_solution(sol), (xi, u)
+        return RigidState(R=R1, mu=mu1, q=q1, p=p1)
 
 
 class LGVI(AbstractLieVI):

@@ -1,0 +1,750 @@
+r"""Scalarisation: re-emit a function of small arrays as scalar elementwise operations.
+
+The discrete equations of the Lie-group methods are built by autodiff through 3-vectors and
+3x3 matrices (matrix products, transposes, cross products, reductions over size-3 axes).
+XLA compiles each such small operation as a kernel of its own (CPU matrix products even
+become library calls), and a Newton iteration then costs dozens of kernel launches per step:
+the price is per kernel, not per flop. :func:`scalarize` removes the small arrays: it traces
+a function to a jaxpr and evaluates that jaxpr on **arrays of scalars** (NumPy object arrays
+whose entries are 0-d JAX values), so that every matrix product becomes a handful of scalar
+multiply-adds, every transpose, slice, reshape or broadcast becomes a re-indexing at trace
+time (no operation at all), and what is left is one long chain of scalar elementwise
+operations that XLA fuses into a few kernels. Under ``jax.vmap`` each scalar becomes one
+contiguous array over the batch (a structure of arrays), under ``jit`` of one trajectory a
+register.
+
+While interpreting it folds constants and applies the identities ``x + 0 = x``,
+``x * 0 = 0``, ``x * 1 = x``, ``select(c, a, b)`` with a known ``c``: autodiff of
+matrix-form energies is full of structural zeros (``hat`` maps, identity matrices), and a
+scalar program only keeps the arithmetic that reaches the result. (``x * 0 = 0`` drops the
+propagation of a NaN in ``x`` into that product; every non-finite state still reaches the
+outputs through its other uses, where the rollouts test it.)
+
+The values are those of the original function up to the order of floating-point additions
+(sums of products are accumulated left to right, as a matrix product of size 3 would).
+Supported: elementwise primitives, ``broadcast_in_dim``, ``reshape``, ``squeeze``,
+``expand_dims``, ``transpose``, ``slice``, ``concatenate``, ``pad``, ``split``, ``stack``,
+``unstack``, ``rev``, ``iota``, ``reduce_sum/max/min/and/or``, ``dot_general``, ``select_n``,
+``cond`` (both branches, selected), nested ``jit`` and the primal of ``custom_jvp`` /
+``custom_vjp`` calls (the result is differentiated through its scalar operations, which is
+exact since they are the same function). Anything else raises ``NotImplementedError``
+naming the primitive.
+"""
+
+from __future__ import annotations
+
+import functools
+import itertools
+import math
+from collections.abc import Callable
+from typing import Any
+
+import jax
+import jax.extend as jex
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+
+__all__ = ["ScalarFunction", "join", "scalarize", "split"]
+
+
+# ---------------------------------------------------------------------------------------
+# Scalars: a known constant is a NumPy scalar (np.generic), anything else a 0-d JAX value.
+# ---------------------------------------------------------------------------------------
+
+def _is_const(x) -> bool:
+    return isinstance(x, np.generic)
+
+
+def _const(value, dtype) -> np.generic:
+    return np.asarray(value, dtype=dtype)[()]
+
+
+def split(x) -> np.ndarray:
+    """An array as an object array of its scalar entries (NumPy scalars when ``x`` is
+    concrete NumPy data, so that constants fold)."""
+    if isinstance(x, np.ndarray | np.generic | float | int | bool):
+        arr = np.asarray(x)
+        out = np.empty(arr.shape, dtype=object)
+        for idx in np.ndindex(arr.shape):
+            out[idx] = arr[idx]
+        return out
+    x = jnp.asarray(x)
+    out = np.empty(x.shape, dtype=object)
+    if x.ndim == 0:
+        out[()] = x
+        return out
+    flat = x.reshape(-1)
+    items = [flat[i] for i in range(flat.shape[0])]
+    for i, idx in enumerate(np.ndindex(x.shape)):
+        out[idx] = items[i]
+    return out
+
+
+def join(obj: np.ndarray, dtype=None) -> jax.Array:
+    """The array with the scalar entries of ``obj`` (inverse of :func:`split`)."""
+    obj = np.asarray(obj, dtype=object)
+    if dtype is None:
+        dtype = _dtype_of(obj)
+    items = [jnp.asarray(v, dtype) for v in obj.reshape(-1)]
+    if not items:
+        return jnp.zeros(obj.shape, dtype)
+    return jnp.stack(items).reshape(obj.shape)
+
+
+def _dtype_of(obj):
+    for v in obj.reshape(-1):
+        return jnp.result_type(v)
+    return jnp.float64
+
+
+# ---------------------------------------------------------------------------------------
+# Elementwise primitives, with constant folding and the identities of the docstring.
+# ---------------------------------------------------------------------------------------
+
+_NUMPY_UNARY = {
+    "neg": np.negative, "sin": np.sin, "cos": np.cos, "tan": np.tan, "sqrt": np.sqrt,
+    "exp": np.exp, "log": np.log, "log1p": np.log1p, "expm1": np.expm1, "abs": np.abs,
+    "sign": np.sign, "tanh": np.tanh, "sinh": np.sinh, "cosh": np.cosh, "atan": np.arctan,
+    "asin": np.arcsin, "acos": np.arccos, "floor": np.floor, "ceil": np.ceil,
+    "not": np.logical_not, "is_finite": np.isfinite, "square": np.square,
+}
+_NUMPY_BINARY = {
+    "add": np.add, "add_any": np.add, "sub": np.subtract, "mul": np.multiply,
+    "div": np.divide, "max": np.maximum, "min": np.minimum, "pow": np.power,
+    "atan2": np.arctan2, "eq": np.equal, "ne": np.not_equal, "lt": np.less,
+    "le": np.less_equal, "gt": np.greater, "ge": np.greater_equal, "and": np.logical_and,
+    "or": np.logical_or, "rem": np.fmod,
+}
+_ELEMENTWISE = set(_NUMPY_UNARY) | set(_NUMPY_BINARY) | {
+    "integer_pow", "convert_element_type", "select_n", "clamp", "copy", "copy_p", "rsqrt",
+    "cbrt", "logistic", "erf", "erfc", "erf_inv", "exp2", "asinh", "acosh", "atanh",
+    "round", "nextafter", "reduce_precision", "xor", "lgamma", "digamma",
+    "optimization_barrier",
+}
+
+
+def _is(x, value) -> bool:
+    return _is_const(x) and x.dtype.kind in "fiu" and x == value
+
+
+def _fold(name, params, args, dtype):
+    """Evaluate an elementwise primitive on constants with NumPy (or return None)."""
+    with np.errstate(all="ignore"):
+        if name in _NUMPY_UNARY:
+            return _const(_NUMPY_UNARY[name](args[0]), dtype)
+        if name in _NUMPY_BINARY:
+            return _const(_NUMPY_BINARY[name](args[0], args[1]), dtype)
+        if name == "integer_pow":
+            return _const(np.power(args[0], params["y"]), dtype)
+        if name == "convert_element_type":
+            return _const(args[0], dtype)
+        if name == "select_n":
+            return _const(args[1 + int(args[0])], dtype)
+        if name in ("copy", "copy_p"):
+            return args[0]
+        if name == "rsqrt":
+            return _const(1.0 / np.sqrt(args[0]), dtype)
+    return None
+
+
+def _simplify(name, params, args, dtype):
+    """Identities with one known operand; None if none applies."""
+    if name in ("add", "add_any"):
+        a, b = args
+        if _is(a, 0):
+            return b
+        if _is(b, 0):
+            return a
+    elif name == "sub":
+        a, b = args
+        if _is(b, 0):
+            return a
+        if _is(a, 0):
+            return _apply("neg", {}, [b], dtype)
+    elif name == "mul":
+        a, b = args
+        if _is(a, 0) or _is(b, 0):
+            return _const(0, dtype)
+        if _is(a, 1):
+            return b
+        if _is(b, 1):
+            return a
+        if _is(a, -1):
+            return _apply("neg", {}, [b], dtype)
+        if _is(b, -1):
+            return _apply("neg", {}, [a], dtype)
+    elif name == "div":
+        a, b = args
+        if _is(a, 0) and not _is(b, 0):
+            return _const(0, dtype)
+        if _is(b, 1):
+            return a
+    elif name == "neg":
+        (a,) = args
+        if _is(a, 0):
+            return _const(0, dtype)
+    elif name == "select_n":
+        pred, *cases = args
+        if _is_const(pred):
+            return cases[int(pred)]
+        if all(c is cases[0] for c in cases[1:]):
+            return cases[0]
+    elif name == "convert_element_type":
+        (a,) = args
+        if not _is_const(a) and jnp.result_type(a) == dtype:
+            return a
+    elif name == "integer_pow":
+        (a,) = args
+        if params["y"] == 1:
+            return a
+        if _is(a, 0) and params["y"] > 0:
+            return _const(0, dtype)
+    elif name in ("copy", "copy_p", "optimization_barrier"):
+        return args[0]
+    return None
+
+
+def _bind_params(name, params):
+    if name == "convert_element_type":
+        return dict(params, weak_type=False)
+    if not params:
+        return _default_params().get(name, params)
+    return params
+
+
+@functools.cache
+def _default_params() -> dict[str, dict]:
+    """The parameters JAX itself binds for the operations the hand-written scalar code
+    emits (read off a traced example, so that they follow the installed JAX)."""
+    def example(a, b):
+        p = a > b
+        return (a * b, a + b, a - b, a / b, -a, lax.max(a, b), lax.min(a, b), jnp.abs(a),
+                p & p, p | p, ~p, jnp.isfinite(a), a < b, a >= b, a <= b, lax.sqrt(a),
+                lax.sin(a), lax.cos(a))
+
+    closed = jax.make_jaxpr(example)(1.0, 2.0)
+    return {eqn.primitive.name: dict(eqn.params) for eqn in closed.jaxpr.eqns}
+
+
+_PRIMITIVES: dict[str, Any] = {}
+
+
+def _apply(name, params, args, dtype, primitive=None):
+    """One scalar elementwise operation."""
+    if all(_is_const(a) for a in args):
+        folded = _fold(name, params, args, dtype)
+        if folded is not None:
+            return folded
+    simple = _simplify(name, params, args, dtype)
+    if simple is not None:
+        return simple
+    if primitive is None:
+        primitive = _PRIMITIVES[name]
+    # lax primitives take operands of one dtype; constants carry theirs already.
+    out = primitive.bind(*[_operand(a) for a in args], **_bind_params(name, params))
+    return out
+
+
+def _operand(a):
+    if _is_const(a):
+        return np.asarray(a)
+    return a
+
+
+def _add(a, b):
+    return _apply("add", {}, [a, b], np.result_type(_dt(a), _dt(b)))
+
+
+def _mul(a, b):
+    return _apply("mul", {}, [a, b], np.result_type(_dt(a), _dt(b)))
+
+
+def _dt(x):
+    return x.dtype if _is_const(x) else jnp.result_type(x)
+
+
+def _register_lax():
+    for name in _ELEMENTWISE | {"add_any"}:
+        prim = getattr(lax, f"{name}_p", None)
+        if prim is not None:
+            _PRIMITIVES[name] = prim
+    _PRIMITIVES["add_any"] = lax.add_p  # add_any is addition of values
+
+
+_register_lax()
+
+
+# ---------------------------------------------------------------------------------------
+# Structural primitives on object arrays.
+# ---------------------------------------------------------------------------------------
+
+def _reduce(x: np.ndarray, axes, op: Callable, dtype) -> np.ndarray:
+    axes = tuple(sorted(axes))
+    keep = [d for d in range(x.ndim) if d not in axes]
+    moved = np.transpose(x, keep + list(axes))
+    out_shape = moved.shape[: len(keep)]
+    k = math.prod(moved.shape[len(keep):])
+    flat = moved.reshape((*out_shape, k))
+    out = np.empty(out_shape, dtype=object)
+    for idx in np.ndindex(out_shape):
+        items = list(flat[idx])
+        acc = items[0]
+        for item in items[1:]:
+            acc = op(acc, item)
+        out[idx] = acc
+    return out
+
+
+def _dot_general(lhs, rhs, dimension_numbers, dtype):
+    (lc, rc), (lb, rb) = dimension_numbers
+    lf = [d for d in range(lhs.ndim) if d not in lc and d not in lb]
+    rf = [d for d in range(rhs.ndim) if d not in rc and d not in rb]
+    L = np.transpose(lhs, list(lb) + lf + list(lc))
+    Rm = np.transpose(rhs, list(rb) + rf + list(rc))
+    bshape = L.shape[: len(lb)]
+    lfs = L.shape[len(lb): len(lb) + len(lf)]
+    rfs = Rm.shape[len(rb): len(rb) + len(rf)]
+    k = math.prod(L.shape[len(lb) + len(lf):])
+    L = L.reshape(bshape + lfs + (k,))
+    Rm = Rm.reshape(bshape + rfs + (k,))
+    out = np.empty(bshape + lfs + rfs, dtype=object)
+    for b in np.ndindex(bshape):
+        for i in np.ndindex(lfs):
+            for j in np.ndindex(rfs):
+                acc = _const(0, dtype)
+                for t in range(k):
+                    acc = _apply("add", {}, [acc, _apply("mul", {}, [L[b + i][t], Rm[b + j][t]],
+                                                        dtype)], dtype)
+                out[b + i + j] = acc
+    return out
+
+
+def _pad(x, padval, config):
+    """``lax.pad``: interior and edge padding (edges may be negative: cropping)."""
+    grown = [max(lo, 0) + max(hi, 0) + n + max(n - 1, 0) * it
+             for n, (lo, hi, it) in zip(x.shape, config, strict=True)]
+    out = _full(tuple(grown), padval)
+    place = tuple(slice(max(lo, 0), max(lo, 0) + n + max(n - 1, 0) * it, it + 1)
+                  for n, (lo, hi, it) in zip(x.shape, config, strict=True))
+    out[place] = x
+    crop = tuple(slice(max(-lo, 0), g - max(-hi, 0))
+                 for g, (lo, hi, _) in zip(grown, config, strict=True))
+    return out[crop]
+
+
+def _full(shape, value):
+    out = np.empty(shape, dtype=object)
+    for idx in np.ndindex(shape):
+        out[idx] = value
+    return out
+
+
+def _flatten(vals):
+    """Object arrays -> a flat list of scalars (for loop carries and branch outputs)."""
+    return [v for x in vals for v in x.reshape(-1)]
+
+
+def _unflatten(flat, avals):
+    out, i = [], 0
+    for aval in avals:
+        n = math.prod(aval.shape)
+        arr = np.empty(aval.shape, dtype=object)
+        for j, idx in enumerate(np.ndindex(aval.shape)):
+            arr[idx] = flat[i + j]
+        out.append(arr)
+        i += n
+    return out
+
+
+# ---------------------------------------------------------------------------------------
+# The interpreter.
+# ---------------------------------------------------------------------------------------
+
+def _eval_jaxpr(jaxpr, consts, args) -> list[np.ndarray]:
+    env: dict = {}
+
+    def read(v):
+        if isinstance(v, jex.core.Literal):
+            return split(np.asarray(v.val, dtype=v.aval.dtype))
+        return env[v]
+
+    for var, val in zip(jaxpr.constvars, consts, strict=True):
+        env[var] = val
+    for var, val in zip(jaxpr.invars, args, strict=True):
+        env[var] = val
+    for eqn in jaxpr.eqns:
+        invals = [read(v) for v in eqn.invars]
+        outs = _eval_eqn(eqn, invals)
+        for var, val in zip(eqn.outvars, outs, strict=True):
+            env[var] = val
+    return [read(v) for v in jaxpr.outvars]
+
+
+def _closed(jaxpr_like):
+    if hasattr(jaxpr_like, "jaxpr"):
+        return jaxpr_like.jaxpr, [split(c) for c in jaxpr_like.consts]
+    return jaxpr_like, []
+
+
+def _call_closed(closed, invals):
+    jaxpr, consts = _closed(closed)
+    return _eval_jaxpr(jaxpr, consts, invals)
+
+
+def _eval_eqn(eqn, invals) -> list[np.ndarray]:
+    name = eqn.primitive.name
+    params = eqn.params
+    out_avals = [v.aval for v in eqn.outvars]
+    aval = out_avals[0] if out_avals else None
+
+    if name in _ELEMENTWISE:
+        shape, dtype = aval.shape, aval.dtype
+        b = [np.broadcast_to(x, shape) for x in invals]
+        out = np.empty(shape, dtype=object)
+        for idx in np.ndindex(shape):
+            out[idx] = _apply(name, params, [x[idx] for x in b], dtype, eqn.primitive)
+        return [out]
+    if name == "broadcast_in_dim":
+        (x,) = invals[:1]
+        shape, dims = params["shape"], params["broadcast_dimensions"]
+        expanded = [1] * len(shape)
+        for i, d in enumerate(dims):
+            expanded[d] = x.shape[i]
+        return [np.broadcast_to(x.reshape(expanded), shape).copy()]
+    if name == "reshape":
+        return [invals[0].reshape(params["new_sizes"])]
+    if name == "squeeze":
+        return [np.squeeze(invals[0], axis=tuple(params["dimensions"]))]
+    if name == "expand_dims":
+        return [np.expand_dims(invals[0], tuple(params["dimensions"]))]
+    if name == "transpose":
+        return [np.transpose(invals[0], params["permutation"])]
+    if name == "rev":
+        return [np.flip(invals[0], axis=tuple(params["dimensions"]))]
+    if name == "slice":
+        strides = params["strides"] or (1,) * invals[0].ndim
+        idx = tuple(slice(s, e, st) for s, e, st in
+                    zip(params["start_indices"], params["limit_indices"], strides, strict=True))
+        return [invals[0][idx]]
+    if name == "concatenate":
+        return [np.concatenate(invals, axis=params["dimension"])]
+    if name == "pad":
+        x, padval = invals
+        return [_pad(x, padval[()], params["padding_config"])]
+    if name == "split":
+        bounds = list(itertools.accumulate(int(s) for s in params["sizes"]))[:-1]
+        return list(np.split(invals[0], bounds, axis=params["axis"]))
+    if name == "stack":
+        return [np.stack(invals, axis=params["axis"])]
+    if name == "unstack":
+        x = invals[0]
+        axis = params["axis"]
+        return [np.squeeze(np.take(x, [i], axis=axis), axis=axis) for i in range(x.shape[axis])]
+    if name == "iota":
+        shape, dim = aval.shape, params["dimension"]
+        ramp = np.arange(shape[dim], dtype=aval.dtype).reshape(
+            [shape[dim] if d == dim else 1 for d in range(len(shape))])
+        return [split(np.broadcast_to(ramp, shape))]
+    if name in ("reduce_sum", "reduce_max", "reduce_min", "reduce_and", "reduce_or",
+                "reduce_prod"):
+        op_name = {"reduce_sum": "add", "reduce_max": "max", "reduce_min": "min",
+                   "reduce_and": "and", "reduce_or": "or", "reduce_prod": "mul"}[name]
+        dtype = aval.dtype
+        prim = _PRIMITIVES[op_name]
+        x = invals[0]
+        axes = params["axes"]
+        if any(x.shape[a] == 0 for a in axes):
+            return [split(np.asarray(_reduce_identity(op_name, dtype, aval.shape)))]
+        return [_reduce(x, axes, lambda a, b: _apply(op_name, {}, [a, b], dtype, prim), dtype)]
+    if name == "dot_general":
+        return [_dot_general(invals[0], invals[1], params["dimension_numbers"], aval.dtype)]
+    if name in ("pjit", "jit", "closed_call", "core_call", "remat", "checkpoint"):
+        inner = params.get("jaxpr") or params.get("call_jaxpr")
+        return _call_closed(inner, invals)
+    if name == "custom_jvp_call":
+        return _call_closed(params["call_jaxpr"], invals)
+    if name == "custom_vjp_call" or name == "custom_vjp_call_jaxpr":
+        inner = params.get("call_jaxpr") or params.get("fun_jaxpr")
+        return _call_closed(inner, invals)
+    if name == "cond":
+        index, *ops = invals
+        branches = params["branches"]
+        idx = index[()]
+        if _is_const(idx):
+            return _call_closed(branches[int(idx)], ops)
+        results = [_call_closed(br, ops) for br in branches]
+        outs = []
+        for k, oa in enumerate(out_avals):
+            arr = np.empty(oa.shape, dtype=object)
+            for el in np.ndindex(oa.shape):
+                cases = [r[k][el] for r in results]
+                arr[el] = _apply("select_n", {}, [idx, *cases], oa.dtype, lax.select_n_p)
+            outs.append(arr)
+        return outs
+    if name == "while":
+        return _while(eqn, invals)
+    raise NotImplementedError(
+        f"scalarize: primitive {name!r} is not supported (shapes "
+        f"{[v.aval.str_short() for v in eqn.invars]})"
+    )
+
+
+def _reduce_identity(op_name, dtype, shape):
+    value = {"add": 0, "mul": 1, "max": -np.inf, "min": np.inf, "and": True, "or": False}
+    return np.full(shape, value[op_name], dtype=dtype)
+
+
+def _materialise(x, dtype):
+    """A loop carry must be a JAX value of a fixed dtype."""
+    return jnp.asarray(np.asarray(x) if _is_const(x) else x, dtype)
+
+
+def _while(eqn, invals):
+    params = eqn.params
+    cj, bj = params["cond_jaxpr"], params["body_jaxpr"]
+    cn, bn = params["cond_nconsts"], params["body_nconsts"]
+    cconsts, bconsts, init = invals[:cn], invals[cn: cn + bn], invals[cn + bn:]
+    avals = [v.aval for v in eqn.outvars]
+    dtypes = [a.dtype for a in avals for _ in range(math.prod(a.shape))]
+    flat0 = [_materialise(x, d) for x, d in zip(_flatten(init), dtypes, strict=True)]
+
+    def cond(flat):
+        (out,) = _call_closed(cj, [*cconsts, *_unflatten(list(flat), avals)])
+        return _materialise(out[()], np.bool_)
+
+    def body(flat):
+        outs = _call_closed(bj, [*bconsts, *_unflatten(list(flat), avals)])
+        return tuple(_materialise(x, d) for x, d in zip(_flatten(outs), dtypes, strict=True))
+
+    flat = lax.while_loop(cond, body, tuple(flat0))
+    return _unflatten(list(flat), avals)
+
+
+# ---------------------------------------------------------------------------------------
+# Public entry points.
+# ---------------------------------------------------------------------------------------
+
+class ScalarFunction:
+    """``fn`` traced once for arguments shaped like ``example`` (a pytree of arrays or
+    ``jax.ShapeDtypeStruct``), evaluated on pytrees of object arrays of scalars.
+
+    ``sf(*scalar_args)`` takes the arguments with every leaf replaced by its
+    :func:`split` and returns the outputs likewise; chaining scalar functions this way
+    never materialises the small arrays in between.
+
+    The scalar program is built once (a jaxpr of 0-d operations, after folding and the
+    identities) and replayed at every call. Replayed under ``vmap``, the values that
+    several operations read and that take more than :data:`MATERIALIZE_COST` operations
+    to compute are materialised (:func:`_keep`): XLA would otherwise recompute them inside
+    every kernel that reads them (see :func:`materialize`).
+    """
+
+    def __init__(self, fn: Callable, *example):
+        structs = jax.tree.map(lambda x: jax.ShapeDtypeStruct(jnp.shape(x), jnp.result_type(x)),
+                               example)
+        closed, out_shape = jax.make_jaxpr(fn, return_shape=True)(*structs)
+        self.in_tree = jax.tree.structure(example)
+        self.out_shape = out_shape
+        self.out_tree = jax.tree.structure(out_shape)
+        jaxpr = closed.jaxpr
+        # Concrete constants fold into the program; traced ones (closures) become inputs.
+        known = [_concrete(c) for c in closed.consts]
+        self.traced_consts = [c for c, k in zip(closed.consts, known, strict=True) if not k]
+        in_avals = ([v.aval for v, k in zip(jaxpr.constvars, known, strict=True) if not k]
+                    + [v.aval for v in jaxpr.invars])
+        self.in_avals = in_avals
+        self.out_avals = [v.aval for v in jaxpr.outvars]
+
+        def program(*flat):
+            arrays = _unflatten(list(flat), in_avals)
+            n_traced = len(self.traced_consts)
+            it = iter(arrays[:n_traced])
+            consts = [split(np.asarray(c)) if k else next(it)
+                      for c, k in zip(closed.consts, known, strict=True)]
+            outs = _flatten(_eval_jaxpr(jaxpr, consts, arrays[n_traced:]))
+            self.const_outputs = {i: v for i, v in enumerate(outs) if _is_const(v)}
+            return [_materialise(v, d) for v, d in
+                    zip(outs, _flat_dtypes(self.out_avals), strict=True)]
+
+        scalars = [jax.ShapeDtypeStruct((), a.dtype) for a in in_avals
+                   for _ in range(math.prod(a.shape))]
+        self.program = jax.make_jaxpr(program)(*scalars)
+        self.keep = _materialization_points(self.program.jaxpr)
+
+    @property
+    def size(self) -> int:
+        """Operations in the scalar program."""
+        return len(self.program.jaxpr.eqns)
+
+    def __call__(self, *scalar_args):
+        leaves = self.in_tree.flatten_up_to(scalar_args)
+        consts = [split(c) for c in self.traced_consts]
+        flat = _flatten([np.asarray(x, dtype=object) for x in consts + list(leaves)])
+        outs = _replay(self.program, flat, self.keep if _under_vmap() else frozenset())
+        outs = [self.const_outputs.get(i, v) for i, v in enumerate(outs)]
+        return jax.tree.unflatten(self.out_tree, _unflatten(outs, self.out_avals))
+
+
+#: Cost (operations, counting a value read twice twice) above which a value read by several
+#: operations is materialised under ``vmap`` (:class:`ScalarFunction`).
+MATERIALIZE_COST = 16
+
+
+def _flat_dtypes(avals):
+    return [a.dtype for a in avals for _ in range(math.prod(a.shape))]
+
+
+def _materialization_points(jaxpr) -> frozenset:
+    """The variables to compute once: read at least twice, and each costing at least
+    :data:`MATERIALIZE_COST` operations as XLA would emit it (its expression tree, down to
+    inputs and other such variables)."""
+    uses: dict = {}
+    for eqn in jaxpr.eqns:
+        for v in eqn.invars:
+            if not isinstance(v, jex.core.Literal):
+                uses[v] = uses.get(v, 0) + 1
+    for v in jaxpr.outvars:
+        if not isinstance(v, jex.core.Literal):
+            uses[v] = uses.get(v, 0) + 1
+    cost: dict = {}
+    keep = set()
+    for eqn in jaxpr.eqns:
+        c = 1 + sum(cost.get(v, 0) for v in eqn.invars if not isinstance(v, jex.core.Literal))
+        for out in eqn.outvars:
+            if uses.get(out, 0) >= 2 and c >= MATERIALIZE_COST and not out.aval.shape:
+                keep.add(out)
+                cost[out] = 0
+            else:
+                cost[out] = c
+    return frozenset(keep)
+
+
+def _replay(closed, flat, keep):
+    """Evaluate a scalar program on scalars (folding with call-site constants)."""
+    jaxpr = closed.jaxpr
+    env: dict = {}
+
+    def read(v):
+        if isinstance(v, jex.core.Literal):
+            return _const(v.val, v.aval.dtype)
+        return env[v]
+
+    for var, val in zip(jaxpr.constvars, closed.consts, strict=True):
+        env[var] = val
+    for var, val in zip(jaxpr.invars, flat, strict=True):
+        env[var] = val
+    kept = []
+    for eqn in jaxpr.eqns:
+        invals = [read(v) for v in eqn.invars]
+        name = eqn.primitive.name
+        if name in _ELEMENTWISE and len(eqn.outvars) == 1 and not eqn.outvars[0].aval.shape:
+            outs = [_apply(name, eqn.params, invals, eqn.outvars[0].aval.dtype, eqn.primitive)]
+        else:
+            subfuns, params = eqn.primitive.get_bind_params(eqn.params)
+            outs = eqn.primitive.bind(*subfuns, *[_operand(x) for x in invals], **params)
+            outs = outs if eqn.primitive.multiple_results else [outs]
+        for var, val in zip(eqn.outvars, outs, strict=True):
+            if var in keep and not _is_const(val):
+                val = _keep(val)
+                kept.append(val)
+            env[var] = val
+    return [read(v) for v in jaxpr.outvars]
+
+
+def _keep(x):
+    """``x`` computed once: an ``optimization_barrier`` keeps XLA from fusing its
+    producers into every consumer (it duplicates cheap operations into each kernel that
+    reads them, which for long chains of shared scalar arithmetic multiplies the work)."""
+    return lax.optimization_barrier(x)
+
+
+def _under_vmap() -> bool:
+    return jex.core.unsafe_am_i_under_a_vmap_DO_NOT_USE()
+
+
+def _concrete(c) -> bool:
+    return not isinstance(c, jax.core.Tracer)
+
+
+def scalarize(fn: Callable) -> Callable:
+    """``fn`` evaluated through scalar elementwise operations (module docstring): same
+    inputs, same outputs, to the order of floating-point sums."""
+
+    @functools.wraps(fn)
+    def wrapped(*args):
+        sf = ScalarFunction(fn, *args)
+        outs = sf(*jax.tree.map(split, args))
+        return jax.tree.map(lambda o, s: join(o, s.dtype).reshape(s.shape), outs,
+                            sf.out_shape, is_leaf=lambda x: isinstance(x, np.ndarray))
+
+    return wrapped
+
+
+# ---------------------------------------------------------------------------------------
+# Scalar arithmetic for hand-written scalar algorithms (the Newton loops), with the same
+# folding and identities as the interpreter.
+# ---------------------------------------------------------------------------------------
+
+def _binary(name):
+    def op(a, b):
+        return _apply(name, {}, [a, b], np.result_type(_dt(a), _dt(b)))
+    op.__name__ = name
+    return op
+
+
+def _compare(name):
+    def op(a, b):
+        dtype = np.result_type(_dt(a), _dt(b))
+        return _apply(name, {}, [_cast(a, dtype), _cast(b, dtype)], np.bool_)
+    op.__name__ = name
+    return op
+
+
+def _cast(x, dtype):
+    if _is_const(x):
+        return _const(x, dtype)
+    if jnp.result_type(x) == dtype:
+        return x
+    return _apply("convert_element_type", {"new_dtype": dtype, "weak_type": False,
+                                            "sharding": None}, [x], dtype)
+
+
+add, sub, mul, div = _binary("add"), _binary("sub"), _binary("mul"), _binary("div")
+maximum = _binary("max")
+gt, ge, lt, le = _compare("gt"), _compare("ge"), _compare("lt"), _compare("le")
+
+
+def neg(a):
+    return _apply("neg", {}, [a], _dt(a))
+
+
+def absolute(a):
+    return _apply("abs", {}, [a], _dt(a))
+
+
+def logical_and(a, b):
+    return _apply("and", {}, [a, b], np.bool_)
+
+
+def logical_or(a, b):
+    return _apply("or", {}, [a, b], np.bool_)
+
+
+def logical_not(a):
+    return _apply("not", {}, [a], np.bool_)
+
+
+def isfinite(a):
+    return _apply("is_finite", {}, [a], np.bool_)
+
+
+def select(pred, on_true, on_false):
+    """``on_true`` where ``pred``, else ``on_false`` (``lax.select``)."""
+    dtype = np.result_type(_dt(on_true), _dt(on_false))
+    return _apply("select_n", {}, [pred, _cast(on_false, dtype), _cast(on_true, dtype)], dtype)
+
+
+def constant(value, dtype) -> np.generic:
+    """A known scalar (folds, and simplifies the operations it enters)."""
+    return _const(value, dtype)
