@@ -202,10 +202,9 @@ def test_bench_markdown_reports_the_measured_values(tmp_path):
     assert text.endswith("benchmark process: 512 MB.\n")
 
 
-@pytest.mark.slow
 def test_bench_command_quick_run(tmp_path, capsys):
     """``lgvi-jax bench --quick`` end to end on one method, few steps and a small batch
-    (about a minute on a loaded 2-core machine, Numba's compilation included):
+    (measured 24 s on a loaded 2-core machine, Numba's compilation included):
     bench.json holds a positive throughput for each of lgvi's three variants, no failed
     trajectory, and ratios that are JAX over Numba; bench.md is what was printed."""
     out = tmp_path / "bench"
