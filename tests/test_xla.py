@@ -105,3 +105,31 @@ def test_opt_out(value):
                  **{_xla.OPT_OUT: value})
     assert out.returncode == 0 and "xla_backend_extra_options" not in out.stdout
     assert "xla_cpu_use_fusion_emitters" not in out.stdout
+
+
+def test_alt_numerics_environment(request):
+    """Under ``pytest --alt-numerics`` (tests/conftest.py, docs/testing.md) this process
+    runs untuned with the alternative flags, and lgvi_jax's own settings are absent; in an
+    ordinary run, the tuned default is in effect."""
+    flags = os.environ.get("XLA_FLAGS", "").split()
+    if request.config.getoption("--alt-numerics"):
+        from conftest import alt_xla_flags
+
+        assert os.environ.get(_xla.OPT_OUT) == "0"
+        assert all(entry in flags for entry in alt_xla_flags())
+        assert _xla.flag() not in flags and _xla.EMITTER_FLAG not in flags
+    elif os.environ.get(_xla.OPT_OUT, "1").strip() != "0":
+        assert _xla.flag() in flags
+
+
+def test_alt_numerics_option_is_applied_before_jax_starts():
+    """The option works end to end: a child pytest session with it passes the check above
+    (its conftest sets the environment before lgvi_jax's import and JAX's backend)."""
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", _xla.OPT_OUT)}
+    out = subprocess.run(
+        [sys.executable, "-m", "pytest", "--alt-numerics", "-o", "addopts=", "-q",
+         "-p", "no:cacheprovider", "tests/test_xla.py::test_alt_numerics_environment"],
+        cwd=root, env=env, capture_output=True, text=True, timeout=300, check=False)
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert "1 passed" in out.stdout
