@@ -18,6 +18,7 @@ from typing import Any, NoReturn
 
 import numpy as np
 
+from . import _cache
 from ._io import atomic_write_json, save_npz_atomic
 
 PROG = "lgvi-jax"
@@ -588,6 +589,8 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    if args.command != "info":
+        _cache.enable()  # compiled programs reused across runs (lgvi_jax._cache)
     try:
         return args.func(args)
     except UsageError as err:
