@@ -1,15 +1,21 @@
-"""Plotting helpers (matplotlib, Agg backend, PNG output)."""
+"""Plotting helpers (matplotlib, Agg backend, PNG output). pyplot is imported on first use
+(~0.5 s), so that importing the styles costs nothing."""
 
 from __future__ import annotations
 
 from pathlib import Path
 from typing import Any
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt
 import numpy as np
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
 
 __all__ = ["METHOD_STYLE", "figure", "method_style", "save", "style_for"]
 
@@ -38,7 +44,7 @@ def style_for(name: str) -> dict[str, Any]:
 
 def figure(nrows: int = 1, ncols: int = 1, *, width: float = 7.0, height: float = 3.6, **kw):
     """A figure with a consistent size; returns ``(fig, axes)``."""
-    fig, axes = plt.subplots(nrows, ncols, figsize=(width, height * nrows), **kw)
+    fig, axes = _pyplot().subplots(nrows, ncols, figsize=(width, height * nrows), **kw)
     return fig, axes
 
 
@@ -48,7 +54,7 @@ def save(fig, path: Path | str) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.tight_layout()
     fig.savefig(path, dpi=150)
-    plt.close(fig)
+    _pyplot().close(fig)
     return path
 
 

@@ -771,14 +771,16 @@ def _write_outputs(out: Path, config: SweepConfig, results, summary) -> None:
 
 
 def _plot(path: Path, config: SweepConfig, results) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    # A Figure with the Agg canvas directly: importing pyplot (and choosing its backend)
+    # took ~0.5 s of a short sweep's wall clock.
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
 
     from .plotting import METHOD_STYLE
 
-    fig, ax = plt.subplots(figsize=(max(6.0, 1.1 * len(results) + 2), 4.2))
+    fig = Figure(figsize=(max(6.0, 1.1 * len(results) + 2), 4.2))
+    FigureCanvasAgg(fig)
+    ax = fig.subplots()
     data, labels, colors = [], [], []
     for (method, dt), r in results.items():
         ok = r["result"] == RESULTS.successful
@@ -793,9 +795,8 @@ def _plot(path: Path, config: SweepConfig, results) -> None:
         body.set_alpha(0.5)
     ax.set_xticks(range(1, len(labels) + 1), labels, fontsize=8)
     ax.set_ylabel(r"$\log_{10}$ max $|H - H_0|/|H_0|$")
-    ax.set_title(f"{config.system}: energy error over {config.n} initial conditions "
+    ax.set_title(f"{config.system}: energy error over {config.n} initial conditions\n"
                  f"(perturbation {config.perturb:g}, t = {config.t_final:g})", fontsize=10)
     ax.grid(alpha=0.3)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
-    plt.close(fig)

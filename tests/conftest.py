@@ -4,6 +4,8 @@ starts; this file must not import :mod:`jax` or :mod:`lgvi_jax` at the top):
 
 * two XLA host devices, so that the sharded code paths (sweeps) run on a CPU-only machine
   too;
+* the command line's persistent compilation cache (lgvi_jax._cache) in a temporary folder
+  of this run, shared by its workers and children, instead of the user's ~/.cache;
 * with ``--alt-numerics`` (docs/testing.md), a numerically different but valid compilation
   of every program: the bounds of the suite must hold under both. Set in ``os.environ``,
   so the children that tests start (CLI runs, experiment scripts) inherit it.
@@ -13,6 +15,8 @@ from __future__ import annotations
 
 import os
 import platform
+import shutil
+import tempfile
 
 #: Opt-out of lgvi_jax's own XLA settings (lgvi_jax._xla.OPT_OUT; not imported from there,
 #: since importing lgvi_jax here would apply them before the option is read).
@@ -38,7 +42,13 @@ def pytest_addoption(parser):
              f"{_OPT_OUT}=0 and XLA_FLAGS += {' '.join(alt_xla_flags())} (docs/testing.md)")
 
 
+_CACHE_ENV = "LGVI_JAX_CACHE_DIR"  # lgvi_jax._cache.ENV
+
+
 def pytest_configure(config):
+    if _CACHE_ENV not in os.environ:  # the xdist controller runs first; workers inherit it
+        os.environ[_CACHE_ENV] = tempfile.mkdtemp(prefix="lgvi-jax-test-cache-")
+        config._lgvi_cache_dir = os.environ[_CACHE_ENV]
     if config.getoption("--alt-numerics"):
         os.environ[_OPT_OUT] = "0"
         current = os.environ.get("XLA_FLAGS", "").split()
@@ -47,6 +57,12 @@ def pytest_configure(config):
     import jax  # after the environment is set; JAX reads XLA_FLAGS when its backend starts
 
     jax.config.update("jax_num_cpu_devices", 2)
+
+
+def pytest_unconfigure(config):
+    path = getattr(config, "_lgvi_cache_dir", None)
+    if path:
+        shutil.rmtree(path, ignore_errors=True)
 
 
 def pytest_report_header(config):
