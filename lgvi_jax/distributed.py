@@ -36,7 +36,7 @@ __all__ = [
 ]
 
 #: Seconds a process waits for the coordinator before giving up (the issue: under 60 s).
-INITIALIZATION_TIMEOUT_S = 45
+INITIALIZATION_TIMEOUT_S = 40
 #: Seconds without a heartbeat after which JAX declares a process dead and ends the others.
 HEARTBEAT_TIMEOUT_S = 60
 #: Seconds a clean exit waits for the other processes at JAX's shutdown barrier.
