@@ -794,10 +794,16 @@ def _run_sweep_distributed(config, model, state0, make_method, out: Path, *, res
                 raise SweepError(f"--out {out}: process {me} does not see the manifest.json "
                                  "that process 0 wrote; every process must write into the "
                                  "same folder on a shared file system")
-            timings = _compute_chunks(
-                mine, config, model, state0, make_method, out, devices,
-                lambda count: show(group.add("done", count)) if lead
-                else group.add("done", count))
+            def after_chunk(count: int) -> None:
+                done = group.add("done", count)
+                if lead:
+                    show(done)
+                failed = group.try_read("failed")  # another process failed: stop too
+                if failed is not None:
+                    raise SweepError(failed)
+
+            timings = _compute_chunks(mine, config, model, state0, make_method, out,
+                                      devices, after_chunk)
         except SweepError as err:
             try:
                 group.client.key_value_set(group._key("failed"), json.dumps(

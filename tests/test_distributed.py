@@ -184,6 +184,16 @@ def test_mismatched_arguments_are_refused(tmp_path):
     assert not (out / "manifest.json").exists()
 
 
+def test_an_error_in_one_process_stops_the_others_with_its_message(tmp_path):
+    out = tmp_path / "blocked"
+    # A folder in the way of the second chunk (process 1's first): its write fails.
+    (out / "chunks" / "lgvi__dt0__0000002-0000004.npz" / "x").mkdir(parents=True)
+    (rc0, _, err0, _), (rc1, _, err1, _) = _run_group(out)
+    assert rc1 == 2 and "cannot write" in err1, err1
+    assert rc0 == 2 and "process 1 failed: cannot write" in err0, err0
+    assert not (out / "trajectories.csv").exists()
+
+
 def test_unreachable_coordinator_exits_2_within_60_s(unreachable):
     thread, result = unreachable
     thread.join(TIMEOUT_S)
