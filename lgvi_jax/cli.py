@@ -227,14 +227,18 @@ def _csv_list(text: str, convert, option: str) -> list:
 
 
 def configure_devices(spec: str | None) -> None:
-    """Expose host devices to XLA before JAX starts: ``auto`` = one per core (a no-op
-    when JAX already runs, e.g. in tests), an integer = that many."""
+    """Expose host devices to XLA before JAX starts: ``auto`` = one per core this process
+    may run on (its CPU affinity: what Slurm or ``taskset`` grants it; a no-op when JAX
+    already runs, e.g. in tests), an integer = that many."""
     import jax
 
     if spec is None:
         return
     if spec == "auto":
-        n = os.cpu_count() or 1
+        try:
+            n = len(os.sched_getaffinity(0)) or 1
+        except (AttributeError, OSError):  # no affinity API (macOS, Windows)
+            n = os.cpu_count() or 1
     else:
         try:
             n = int(spec)
@@ -541,7 +545,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="measure the invariants every K steps and at the end (default 1)")
     sw.add_argument("--devices", default="auto", metavar="auto|N",
                     help="host devices to expose on a CPU-only machine (default auto: one "
-                    "per core); the batch is sharded over all devices")
+                    "per core this process may use); the batch is sharded over all devices")
     sw.add_argument("--set", action="append", metavar="NAME=V1[,V2...]",
                     help="override a parameter or the central initial value (repeatable)")
     sw.add_argument("--chord", choices=("exact", "mass"), default="exact",

@@ -140,6 +140,43 @@ def test_two_processes_share_the_work_and_match_one_process(tmp_path, reference)
         assert (out / name).is_file()
 
 
+def _slurm_job_id() -> int:
+    """A job id whose port (JAX's Slurm rule: 61440 + id mod 4096) is free here."""
+    for job in range(1000, 5096):
+        try:
+            with socket.socket() as s:
+                s.bind(("127.0.0.1", job % 4096 + 61440))
+            return job
+        except OSError:
+            continue
+    pytest.skip("no free port in 61440..65535")
+
+
+def test_distributed_auto_under_a_slurm_environment(tmp_path, reference):
+    """``--distributed auto`` reads the coordinator, N and I from Slurm's variables, as
+    ``srun`` sets them (here faked for 2 tasks on this host)."""
+    out = tmp_path / "slurm"
+    job = _slurm_job_id()
+    slurm = {"SLURM_JOB_ID": str(job), "SLURM_STEP_NODELIST": "localhost",
+             "SLURM_NTASKS": "2", "SLURM_STEP_NUM_NODES": "1"}
+    procs = [subprocess.Popen(
+        _cmd(out, ["--distributed", "auto"]), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+        text=True, env=_env(**slurm, SLURM_PROCID=str(i), SLURM_LOCALID=str(i)))
+        for i in range(2)]
+    try:
+        done = [(p.communicate(timeout=TIMEOUT_S), p.returncode) for p in procs]
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+                p.wait()
+    for (_, err), rc in done:
+        assert rc == 0, err
+    summary = json.loads(done[0][0][0])
+    assert summary["processes"] == 2 and all(summary["chunks_by_process"])
+    assert _rows(out) == _rows(reference)
+
+
 def test_killed_process_then_resume_with_two_and_with_one(tmp_path, reference):
     out = tmp_path / "killed"
     # Process 1 kills itself (SIGKILL) right after writing its first chunk; process 0
