@@ -16,6 +16,11 @@ kept. It is built for long unattended runs:
   a result identical, bit for bit, to an uninterrupted run: the initial condition of
   trajectory ``i`` depends only on ``(seed, i)``, and every chunk is computed with the same
   batch shape (the last one is padded).
+* **Several processes and hosts.** Under :mod:`jax.distributed` (``lgvi-jax sweep
+  --coordinator HOST:PORT --num-processes N --process-id I`` or ``--distributed auto``,
+  :mod:`lgvi_jax.distributed`), the processes divide the chunks among themselves and write
+  into one shared folder; process 0 writes the manifest and the summary
+  (``docs/distributed.md``).
 * **Failure is a value.** A trajectory whose Newton solve fails or whose state stops being
   finite is flagged (``result`` code, ``failed_step``) and stops contributing; it never
   stops or contaminates the rest of its batch.

@@ -121,6 +121,12 @@ def test_arguments_are_checked_before_connecting():
         initialize("127.0.0.1:1234", 2, 2)
     with pytest.raises(DistributedError, match="expected HOST:PORT"):
         initialize("localhost", 2, 0)
+    with socket.socket() as busy:  # process 0 would serve the coordinator on a busy port
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        with pytest.raises(DistributedError, match=f"port {port} is already in use"):
+            initialize(f"127.0.0.1:{port}", 2, 0)
 
 
 def test_two_processes_share_the_work_and_match_one_process(tmp_path, reference):
