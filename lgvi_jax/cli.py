@@ -226,19 +226,19 @@ def _csv_list(text: str, convert, option: str) -> list:
         raise UsageError(f"{option} {text!r}: expected a comma-separated list") from None
 
 
-def configure_devices(spec: str | None) -> None:
-    """Expose host devices to XLA before JAX starts: ``auto`` = one per core this process
-    may run on (its CPU affinity: what Slurm or ``taskset`` grants it; a no-op when JAX
-    already runs, e.g. in tests), an integer = that many."""
+def configure_devices(spec: str | None, *, affinity: bool = False) -> None:
+    """Expose host devices to XLA before JAX starts: ``auto`` = one per core (a no-op
+    when JAX already runs, e.g. in tests), an integer = that many. With ``affinity``
+    (a distributed sweep), ``auto`` counts the cores this process may run on (its CPU
+    affinity: what Slurm or ``taskset`` grants it) instead of the machine's."""
     import jax
 
     if spec is None:
         return
     if spec == "auto":
-        try:
-            n = len(os.sched_getaffinity(0)) or 1
-        except (AttributeError, OSError):  # no affinity API (macOS, Windows)
-            n = os.cpu_count() or 1
+        n = os.cpu_count() or 1
+        if affinity and hasattr(os, "sched_getaffinity"):
+            n = len(os.sched_getaffinity(0)) or n
     else:
         try:
             n = int(spec)
@@ -272,7 +272,9 @@ def _start_distributed(args: argparse.Namespace) -> int:
 
 
 def cmd_sweep(args: argparse.Namespace) -> int:
-    configure_devices(args.devices)
+    distributed = args.distributed is not None or any(
+        v is not None for v in (args.coordinator, args.num_processes, args.process_id))
+    configure_devices(args.devices, affinity=distributed)
     index = _start_distributed(args)
     import jax
 
@@ -545,7 +547,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="measure the invariants every K steps and at the end (default 1)")
     sw.add_argument("--devices", default="auto", metavar="auto|N",
                     help="host devices to expose on a CPU-only machine (default auto: one "
-                    "per core this process may use); the batch is sharded over all devices")
+                    "per core; in a distributed sweep, per core this process may run on); the "
+                    "batch is sharded over all devices")
     sw.add_argument("--set", action="append", metavar="NAME=V1[,V2...]",
                     help="override a parameter or the central initial value (repeatable)")
     sw.add_argument("--chord", choices=("exact", "mass"), default="exact",
