@@ -22,7 +22,6 @@ processes or none, completes the sweep.
 from __future__ import annotations
 
 import json
-import os
 import socket
 import time
 from typing import Any
@@ -152,12 +151,6 @@ def initialize(coordinator_address: str | None = None, num_processes: int | None
     return process_id, num_processes
 
 
-def is_initialized() -> bool:
-    from jax._src.distributed import global_state
-
-    return global_state.client is not None
-
-
 class Group:
     """The processes of one distributed call, through the coordinator's key-value store:
     ``publish``/``read`` JSON values, ``barrier``, a shared counter. Keys live under a
@@ -222,11 +215,3 @@ class Group:
                 if msg is not None:
                     raise DistributedError(msg)
             time.sleep(self.POLL_S)
-
-
-def env_summary() -> dict[str, Any]:
-    """The process's place in the run (for logs and the sweep summary)."""
-    import jax
-
-    return {"process_index": jax.process_index(), "process_count": jax.process_count(),
-            "host": socket.gethostname(), "pid": os.getpid()}
