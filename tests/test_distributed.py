@@ -144,6 +144,9 @@ def test_two_processes_share_the_work_and_match_one_process(tmp_path, reference)
     assert _rows(out) == _rows(reference)
     for name in ("summary.json", "summary.md", "energy_error.png", "manifest.json"):
         assert (out / name).is_file()
+    # Process 0 refuses the finished folder without --resume; the others say the same.
+    for rc, _, err, _ in _run_group(out):
+        assert rc == 2 and "already holds a sweep" in err, err
 
 
 def _slurm_job_id() -> int:
