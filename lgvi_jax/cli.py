@@ -226,15 +226,19 @@ def _csv_list(text: str, convert, option: str) -> list:
         raise UsageError(f"{option} {text!r}: expected a comma-separated list") from None
 
 
-def configure_devices(spec: str | None) -> None:
+def configure_devices(spec: str | None, *, affinity: bool = False) -> None:
     """Expose host devices to XLA before JAX starts: ``auto`` = one per core (a no-op
-    when JAX already runs, e.g. in tests), an integer = that many."""
+    when JAX already runs, e.g. in tests), an integer = that many. With ``affinity``
+    (a distributed sweep), ``auto`` counts the cores this process may run on (its CPU
+    affinity: what Slurm or ``taskset`` grants it) instead of the machine's."""
     import jax
 
     if spec is None:
         return
     if spec == "auto":
         n = os.cpu_count() or 1
+        if affinity and hasattr(os, "sched_getaffinity"):
+            n = len(os.sched_getaffinity(0)) or n
     else:
         try:
             n = int(spec)
@@ -250,8 +254,28 @@ def configure_devices(spec: str | None) -> None:
                              "it before the first computation") from None
 
 
+def _start_distributed(args: argparse.Namespace) -> int:
+    """Join the processes of a distributed sweep (before JAX computes anything); returns
+    this process's index (0 without distributed options)."""
+    given = [args.coordinator, args.num_processes, args.process_id]
+    if args.distributed is None and all(v is None for v in given):
+        return 0
+    from .distributed import DistributedError, initialize
+
+    try:
+        index, _ = initialize(args.coordinator, args.num_processes, args.process_id,
+                              auto=args.distributed == "auto",
+                              heartbeat_timeout=args.heartbeat_timeout)
+    except DistributedError as err:
+        raise UsageError(str(err)) from None
+    return index
+
+
 def cmd_sweep(args: argparse.Namespace) -> int:
-    configure_devices(args.devices)
+    distributed = args.distributed is not None or any(
+        v is not None for v in (args.coordinator, args.num_processes, args.process_id))
+    configure_devices(args.devices, affinity=distributed)
+    index = _start_distributed(args)
     import jax
 
     from .scenes import get_scene
@@ -277,7 +301,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
             fused_method(name, model, config.engine, config.chord)
     except (SweepError, ValueError) as err:
         raise UsageError(str(err)) from None
-    quiet = args.json
+    quiet = args.json or index != 0  # in a distributed sweep, process 0 speaks for all
 
     def log(msg: str) -> None:
         if not quiet:
@@ -287,8 +311,10 @@ def cmd_sweep(args: argparse.Namespace) -> int:
         print(f"{PROG} sweep: {msg}", file=sys.stderr)
 
     devices = jax.devices()
+    where = (f" ({jax.process_count()} processes)" if jax.process_count() > 1 else "")
     log(f"{scene.name}: {config.n} initial conditions x {len(config.methods)} method(s) x "
-        f"{len(config.dts)} step(s) on {len(devices)} {devices[0].platform} device(s)")
+        f"{len(config.dts)} step(s) on {len(devices)} {devices[0].platform} device(s)"
+        + where)
     try:
         from .integrators import with_chord_matrix
 
@@ -306,6 +332,8 @@ def cmd_sweep(args: argparse.Namespace) -> int:
         print(f"{PROG} sweep: interrupted; finished chunks are kept in {args.out}: rerun "
               "the same command with --resume to continue", file=sys.stderr)
         return 130
+    if index != 0:  # process 0 reports the whole sweep
+        return 0
     failed = sum(row["failed"] for row in summary["rows"])
     if args.json:
         print(json.dumps({**summary, "out": str(args.out)}))
@@ -519,7 +547,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="measure the invariants every K steps and at the end (default 1)")
     sw.add_argument("--devices", default="auto", metavar="auto|N",
                     help="host devices to expose on a CPU-only machine (default auto: one "
-                    "per core); the batch is sharded over all devices")
+                    "per core; in a distributed sweep, per core this process may run on); the "
+                    "batch is sharded over all devices")
     sw.add_argument("--set", action="append", metavar="NAME=V1[,V2...]",
                     help="override a parameter or the central initial value (repeatable)")
     sw.add_argument("--chord", choices=("exact", "mass"), default="exact",
@@ -533,6 +562,23 @@ def build_parser() -> argparse.ArgumentParser:
                     "general engine (it honours --chord); fused: require the fused steps")
     sw.add_argument("--json", action="store_true",
                     help="print the summary as one JSON object (no progress bar)")
+    dist = sw.add_argument_group(
+        "several processes or hosts (docs/distributed.md)",
+        "Run the same command in every process, with the same --out on a shared file "
+        "system; the chunks are divided among the processes and process 0 writes the "
+        "manifest, the summary and the plot.")
+    dist.add_argument("--coordinator", metavar="HOST:PORT", default=None,
+                      help="address of process 0, which serves the coordinator there")
+    dist.add_argument("--num-processes", type=_positive_int, metavar="N", default=None,
+                      help="number of processes of the sweep")
+    dist.add_argument("--process-id", type=int, metavar="I", default=None,
+                      help="this process's index, 0..N-1")
+    dist.add_argument("--distributed", choices=("auto",), default=None,
+                      help="auto: read the coordinator, N and I from the cluster "
+                      "environment (Slurm, Open MPI), as jax.distributed.initialize() does")
+    dist.add_argument("--heartbeat-timeout", type=_positive_int, metavar="S", default=60,
+                      help="seconds without news from a process after which the others "
+                      "stop (default 60)")
     sw.set_defaults(func=cmd_sweep)
 
     be = sub.add_parser("bench", help="throughput benchmark against the Numba baseline",

@@ -16,6 +16,11 @@ kept. It is built for long unattended runs:
   a result identical, bit for bit, to an uninterrupted run: the initial condition of
   trajectory ``i`` depends only on ``(seed, i)``, and every chunk is computed with the same
   batch shape (the last one is padded).
+* **Several processes and hosts.** Under :mod:`jax.distributed` (``lgvi-jax sweep
+  --coordinator HOST:PORT --num-processes N --process-id I`` or ``--distributed auto``,
+  :mod:`lgvi_jax.distributed`), the processes divide the chunks among themselves and write
+  into one shared folder; process 0 writes the manifest and the summary
+  (``docs/distributed.md``).
 * **Failure is a value.** A trajectory whose Newton solve fails or whose state stops being
   finite is flagged (``result`` code, ``failed_step``) and stops contributing; it never
   stops or contaminates the rest of its batch.
@@ -600,6 +605,60 @@ def prepare_out_dir(out: Path, config: SweepConfig, resume: bool,
     return manifest
 
 
+def _find_todo(out: Path, plan: list[dict[str, Any]], model, state0, resume: bool,
+               warn: Callable[[str], None]) -> tuple[list[int], int]:
+    """Positions in ``plan`` of the chunks to compute (all of them, or on ``resume`` the
+    missing and damaged ones, each damaged one reported through ``warn``), and how many
+    were damaged."""
+    if not resume:
+        return list(range(len(plan))), 0
+    fields = _expected_fields(model, state0)
+    todo, repaired = [], 0
+    for k, c in enumerate(plan):
+        arrays, reason = _read_chunk(out / c["file"], c, fields)
+        if arrays is None:
+            todo.append(k)
+            if reason != "missing":
+                repaired += 1
+                warn(f"chunk {c['file']} is damaged ({reason}): recomputing it")
+    return todo, repaired
+
+
+def _compute_chunks(chunks, config, model, state0, make_method, out: Path, devices,
+                    after_chunk: Callable[[int], None]) -> dict[str, float]:
+    """Compute and write ``chunks`` (each atomically); ``after_chunk(count)`` after each.
+    Returns the rollout wall time per ``method|dt_index``."""
+    n_dev = len(devices)
+    batch = math.ceil(config.chunk / n_dev) * n_dev  # padded chunk shape, fixed
+    batch = min(batch, math.ceil(config.n / n_dev) * n_dev)
+    timings: dict[str, float] = {}
+    methods = {}
+    for i, c in enumerate(chunks):
+        name = c["method"]
+        if name not in methods:
+            methods[name] = make_method(name)
+        count = c["stop"] - c["start"]
+        states = initial_conditions(model, state0, batch, config.perturb, config.seed,
+                                    start=c["start"])
+        start = time.perf_counter()
+        res = run_batch(model, methods[name], states, c["dt"], config.n_steps(c["dt"]),
+                        sample_every=config.sample_every, devices=devices)
+        key = f"{name}|{c['dt_index']}"
+        timings[key] = timings.get(key, 0.0) + time.perf_counter() - start
+        arrays = {k: v[:count] for k, v in res.items()}
+        arrays["index"] = np.arange(c["start"], c["stop"], dtype=np.int64)
+        try:
+            save_npz_atomic(out / c["file"], arrays)
+        except OSError as err:
+            raise SweepError(f"cannot write {out / c['file']}: {err.strerror or err}; fix "
+                             "that (free disk space, remove what is in the way), then "
+                             "rerun with --resume"
+                             ) from None
+        _test_kill_hook(i)
+        after_chunk(count)
+    return timings
+
+
 def run_sweep(config: SweepConfig, model, state0, make_method: Callable[[str], Any],
               out: Path | str, *, resume: bool = False, progress: bool = True,
               devices: Sequence | None = None,
@@ -615,6 +674,17 @@ def run_sweep(config: SweepConfig, model, state0, make_method: Callable[[str], A
     the summary dict also written to ``summary.json`` (per method and step: energy-error
     quantiles, failures, Newton iterations, throughput) plus ``"chunks_computed"``,
     ``"chunks_skipped"`` and ``"chunks_repaired"``.
+
+    **Several processes.** When JAX runs as several processes (``jax.process_count() >
+    1``, after :func:`lgvi_jax.distributed.initialize`), every process calls
+    ``run_sweep`` with the same arguments and the same ``out`` on a shared file system.
+    Process 0 checks the folder and writes the manifest; the chunks to compute are then
+    divided among the processes (process ``i`` takes those at positions ``i`` modulo
+    ``N`` of the list, each on its own ``jax.local_devices()``, or ``devices``); when all
+    are written, process 0 writes the summary, CSV and plot, and every process returns
+    the summary (with ``"processes"`` and ``"chunks_by_process"``). Arguments that differ
+    between processes raise :class:`SweepError` in every process, naming the difference.
+    Only process 0 draws progress (of the whole sweep) and logs.
     """
     if warn is None:
         if log is not None:
@@ -627,57 +697,24 @@ def run_sweep(config: SweepConfig, model, state0, make_method: Callable[[str], A
 
     out = Path(out)
     config.validate()
+    if jax.process_count() > 1:
+        return _run_sweep_distributed(config, model, state0, make_method, out,
+                                      resume=resume, progress=progress, devices=devices,
+                                      log=log, warn=warn)
     manifest = prepare_out_dir(out, config, resume, warn=warn)
     devices = tuple(jax.devices() if devices is None else devices)
-    n_dev = len(devices)
-    batch = math.ceil(config.chunk / n_dev) * n_dev  # padded chunk shape, fixed
-    batch = min(batch, math.ceil(config.n / n_dev) * n_dev)
-
     plan = manifest["chunks"]
-    todo, repaired = plan, 0
-    if resume:
-        fields = _expected_fields(model, state0)
-        todo = []
-        for c in plan:
-            arrays, reason = _read_chunk(out / c["file"], c, fields)
-            if arrays is None:
-                todo.append(c)
-                if reason != "missing":
-                    repaired += 1
-                    warn(f"chunk {c['file']} is damaged ({reason}): recomputing it")
+    todo_pos, repaired = _find_todo(out, plan, model, state0, resume, warn)
+    todo = [plan[k] for k in todo_pos]
     skipped = len(plan) - len(todo)
     n_traj = sum(c["stop"] - c["start"] for c in plan)
     bar = Progress(n_traj, label=f"sweep {config.system}", unit="traj", enabled=progress)
-    bar.advance(sum(c["stop"] - c["start"] for c in plan) - sum(
-        c["stop"] - c["start"] for c in todo), computed=False)
+    bar.advance(n_traj - sum(c["stop"] - c["start"] for c in todo), computed=False)
     if log and skipped:
         log(f"resuming: {skipped} of {len(plan)} chunks already done")
-    timings: dict[str, float] = {}
-    methods = {}
     try:
-        for i, c in enumerate(todo):
-            name = c["method"]
-            if name not in methods:
-                methods[name] = make_method(name)
-            count = c["stop"] - c["start"]
-            states = initial_conditions(model, state0, batch, config.perturb, config.seed,
-                                        start=c["start"])
-            start = time.perf_counter()
-            res = run_batch(model, methods[name], states, c["dt"], config.n_steps(c["dt"]),
-                            sample_every=config.sample_every, devices=devices)
-            key = f"{name}|{c['dt_index']}"
-            timings[key] = timings.get(key, 0.0) + time.perf_counter() - start
-            arrays = {k: v[:count] for k, v in res.items()}
-            arrays["index"] = np.arange(c["start"], c["stop"], dtype=np.int64)
-            try:
-                save_npz_atomic(out / c["file"], arrays)
-            except OSError as err:
-                raise SweepError(f"cannot write {out / c['file']}: {err.strerror or err}; fix "
-                                 "that (free disk space, remove what is in the way), then "
-                                 "rerun with --resume"
-                                 ) from None
-            _test_kill_hook(i)
-            bar.advance(count)
+        timings = _compute_chunks(todo, config, model, state0, make_method, out, devices,
+                                  bar.advance)
     finally:
         bar.close()
     results = load_results(out)
@@ -688,6 +725,138 @@ def run_sweep(config: SweepConfig, model, state0, make_method: Callable[[str], A
     summary["devices"] = [str(d) for d in devices]
     summary["wall_time_s_by_method_dt"] = timings
     _write_outputs(out, config, results, summary)
+    return summary
+
+
+def _differences(a: dict[str, Any], b: dict[str, Any]) -> list[str]:
+    return [k for k in sorted(set(a) | set(b)) if a.get(k) != b.get(k)]
+
+
+def _run_sweep_distributed(config, model, state0, make_method, out: Path, *, resume,
+                           progress, devices, log, warn) -> dict[str, Any]:
+    """:func:`run_sweep` as one of ``jax.process_count()`` processes (see there)."""
+    from .distributed import DistributedError, Group
+
+    group = Group("sweep")
+    me, n_proc = group.index, group.count
+    lead = me == 0
+    devices = tuple(jax.local_devices() if devices is None else devices)
+
+    # 1. Every process was started with the same sweep arguments.
+    args = {**config.to_json(), "resume": bool(resume)}
+    group.publish(f"args/{me}", args)
+    group.barrier("args", timeout_s=600)
+    ref = group.read("args/0", timeout_s=60)
+    for j in range(1, n_proc):
+        diffs = _differences(ref, group.read(f"args/{j}", timeout_s=60))
+        if diffs:
+            names = ", ".join(f"--{k.replace('_', '-')}" if k != "methods" else "--method"
+                              for k in diffs)
+            raise SweepError(f"process {j} was started with other sweep arguments than "
+                             f"process 0 (differs in: {names}); start every process with "
+                             "the same arguments")
+
+    # 2. Process 0 checks the folder, writes the manifest and lists the chunks to do.
+    if lead:
+        try:
+            manifest = prepare_out_dir(out, config, resume, warn=warn)
+            todo_pos, repaired = _find_todo(out, manifest["chunks"], model, state0, resume,
+                                            warn)
+        except SweepError as err:
+            group.publish("prepared", {"error": str(err)})
+            raise
+        group.publish("prepared", {"todo": todo_pos, "repaired": repaired})
+    else:
+        prepared = group.read("prepared")
+        if "error" in prepared:
+            raise SweepError(prepared["error"])
+        todo_pos, repaired = prepared["todo"], prepared["repaired"]
+        manifest = {"chunks": _chunk_plan(config)}
+    plan = manifest["chunks"]
+    todo = [plan[k] for k in todo_pos]
+    mine = [c for pos, c in enumerate(todo) if pos % n_proc == me]
+    total = sum(c["stop"] - c["start"] for c in todo)
+    n_traj = sum(c["stop"] - c["start"] for c in plan)
+    skipped = len(plan) - len(todo)
+
+    # 3. Each process computes its share; process 0 shows the progress of all.
+    bar = Progress(n_traj, label=f"sweep {config.system}", unit="traj",
+                   enabled=progress and lead)
+    bar.advance(n_traj - total, computed=False)
+    shown = [0]
+
+    def show(done: int) -> None:
+        if done > shown[0]:
+            bar.advance(done - shown[0])
+            shown[0] = done
+
+    if lead and log:
+        log(f"{n_proc} processes, {len(todo)} chunk(s) to compute"
+            + (f" ({skipped} of {len(plan)} already done)" if skipped else ""))
+    try:
+        try:
+            if not lead and not (out / "manifest.json").is_file():
+                raise SweepError(f"--out {out}: process {me} does not see the manifest.json "
+                                 "that process 0 wrote; every process must write into the "
+                                 "same folder on a shared file system")
+            def after_chunk(count: int) -> None:
+                done = group.add("done", count)
+                if lead:
+                    show(done)
+                failed = group.try_read("failed")  # another process failed: stop too
+                if failed is not None:
+                    raise SweepError(failed)
+
+            timings = _compute_chunks(mine, config, model, state0, make_method, out,
+                                      devices, after_chunk)
+        except SweepError as err:
+            try:
+                group.client.key_value_set(group._key("failed"), json.dumps(
+                    f"process {me} failed: {err}"))
+            except Exception:  # (another process reported first)
+                pass
+            raise
+        group.publish(f"computed/{me}", {"files": [c["file"] for c in mine],
+                                         "timings": timings,
+                                         "devices": [str(d) for d in devices]})
+        try:
+            group.wait_for_total("done", total, on_progress=show if lead else None,
+                                 failed_key="failed")
+        except DistributedError as err:
+            raise SweepError(str(err)) from None
+        group.barrier("computed", timeout_s=600)
+    finally:
+        bar.close()
+
+    # 4. Process 0 writes the summary, CSV and plot; the others wait for it.
+    if not lead:
+        done = group.read("summary")
+        if "error" in done:
+            raise SweepError(done["error"])
+        return json.loads((out / "summary.json").read_text())
+    try:
+        shares = [group.read(f"computed/{j}", timeout_s=60) for j in range(n_proc)]
+        results = load_results(out)
+        summary = summarize_sweep(config, results)
+        summary["chunks_computed"] = len(todo)
+        summary["chunks_skipped"] = skipped
+        summary["chunks_repaired"] = repaired
+        summary["devices"] = [d for s in shares for d in s["devices"]]
+        timings = {}
+        for s in shares:
+            for k, v in s["timings"].items():
+                timings[k] = timings.get(k, 0.0) + v
+        summary["wall_time_s_by_method_dt"] = timings
+        summary["processes"] = n_proc
+        summary["chunks_by_process"] = [s["files"] for s in shares]
+        _write_outputs(out, config, results, summary)
+    except SweepError as err:
+        group.publish("summary", {"error": str(err)})
+        raise
+    except Exception as err:
+        group.publish("summary", {"error": f"process 0 failed writing the summary: {err}"})
+        raise
+    group.publish("summary", {"ok": True})
     return summary
 
 
