@@ -693,43 +693,6 @@ def raise_if_failed(sol: NewtonSolution) -> NewtonSolution:
 # ---------------------------------------------------------------------------------------
 
 
-def _scalar_inverse(A: list[list[Any]]) -> list[list[Any]]:
-    """Inverse of a small matrix given as rows of scalars: Gauss–Jordan elimination with
-    partial pivoting, the row exchanges done by selects (no gathers), so that it is a
-    straight line of scalar operations. A singular matrix gives non-finite entries."""
-    m = len(A)
-    one, zero = sc.constant(1.0, np.float64), sc.constant(0.0, np.float64)
-    rows = [list(A[i]) + [one if j == i else zero for j in range(m)] for i in range(m)]
-    for k in range(m):
-        # The largest |a_ik| over i >= k; the first such row on ties, as argmax.
-        best, best_abs, takes = rows[k], sc.absolute(rows[k][k]), []
-        for i in range(k + 1, m):
-            cand = sc.absolute(rows[i][k])
-            take = sc.gt(cand, best_abs)
-            best = [sc.select(take, a, b) for a, b in zip(rows[i], best, strict=True)]
-            best_abs = sc.select(take, cand, best_abs)
-            takes.append(take)
-        # Row i >= k+1 is the pivot row if it was taken and no later row was.
-        later = sc.constant(False, np.bool_)
-        chosen = [None] * m
-        for i in reversed(range(k + 1, m)):
-            t = takes[i - k - 1]
-            chosen[i] = sc.logical_and(t, sc.logical_not(later))
-            later = sc.logical_or(later, t)
-        for i in range(k + 1, m):
-            rows[i] = [sc.select(chosen[i], a, b) for a, b in zip(rows[k], rows[i], strict=True)]
-        inv_pivot = sc.div(one, best[k])
-        pivot_row = [sc.mul(a, inv_pivot) for a in best]
-        rows[k] = pivot_row
-        for i in range(m):
-            if i == k:
-                continue
-            factor = rows[i][k]
-            rows[i] = [sc.sub(a, sc.mul(factor, b)) for a, b in zip(rows[i], pivot_row,
-                                                                       strict=True)]
-    return [row[m:] for row in rows]
-
-
 def _scalar_matvec(A, x):
     out = []
     for row in A:
@@ -751,13 +714,22 @@ def _rows(obj) -> list[list[Any]]:
     return [list(obj[i]) for i in range(obj.shape[0])]
 
 
-def _iterate_scalar(fn, y0, args, solver: Newton):
+def _scalar_programs(fn, y0, args):
+    """The residual and its Jacobian as scalar programs (traced once per solve)."""
+    return sc.ScalarFunction(fn, y0, args), sc.ScalarFunction(jax.jacfwd(fn), y0, args)
+
+
+def _iterate_scalar(programs, y0, args, solver: Newton, batched: bool = False):
     """:func:`_iterate_chord_refresh` (``chord_steps > 0``) or plain Newton, written on
-    scalars. Returns (y, result, steps, residual) as arrays."""
+    scalars, with the matrix inverted by blocks (:func:`_scalar_block_inverse`).
+    ``programs``: :func:`_scalar_programs`. ``batched``: the layout under ``vmap`` (shared
+    values materialised, see :class:`~lgvi_jax.scalarize.ScalarFunction`). Each outer
+    iteration inverts the Jacobian at its iterate and runs the updates in an inner loop
+    (chord phase: until convergence or stall; Newton phase: one update), so that the
+    residual appears once in the program. Returns (y, result, steps, residual)."""
+    res_fn, jac_fn = programs
     dtype = y0.dtype
     m = y0.shape[0]
-    res_fn = sc.ScalarFunction(fn, y0, args)
-    jac_fn = sc.ScalarFunction(jax.jacfwd(fn), y0, args)
     args_s = jax.tree.map(sc.split, args)
     chord_cap = min(solver.chord_steps, solver.max_steps)
     inf = jnp.asarray(jnp.inf, dtype)
@@ -770,7 +742,8 @@ def _iterate_scalar(fn, y0, args, solver: Newton):
             out[i] = v
         return out
 
-    def update(y, J_inv, F, k, prev, newton, cap):
+    def update(y, J_inv, k, prev, newton, cap):
+        F = list(res_fn(as_obj(y), args_s, batched=batched))
         delta = [sc.neg(d) for d in _scalar_matvec(J_inv, F)]
         res = _scalar_max([sc.absolute(f) for f in F], zero)
         finite = sc.isfinite(res)
@@ -780,39 +753,30 @@ def _iterate_scalar(fn, y0, args, solver: Newton):
         size = _scalar_max([sc.div(sc.absolute(d), sc.add(atol, sc.mul(rtol, sc.absolute(a))))
                             for d, a in zip(delta, y_new, strict=True)], zero)
         k = k + 1
-        stalled = jnp.where(newton, False, (k >= chord_cap) | (size > 0.5 * prev))
+        # The chord phase gives up (-> Newton) when it stops contracting or runs out; the
+        # Newton phase takes one update per Jacobian and fails at its cap.
+        stop = newton | (k >= chord_cap) | (size > 0.5 * prev)
         result = jnp.where(
             ~finite, RESULTS.nonfinite,
             jnp.where(size <= 1.0, RESULTS.successful,
                       jnp.where(newton & (k >= cap), RESULTS.max_steps_reached, -1)),
         ).astype(jnp.int32)
         y_new = [jnp.where(finite, a, b) for a, b in zip(y_new, y, strict=True)]
-        return y_new, k, result, res, size, stalled
-
-    def F_of(y):
-        return list(res_fn(as_obj(y), args_s))
-
-    def J_of(y):
-        return _rows(jac_fn(as_obj(y), args_s))
+        return (tuple(_jnp(v, dtype) for v in y_new), k, result, _jnp(res, dtype),
+                _jnp(size, dtype), stop)
 
     def outer_body(carry):
         y, k, _, _, newton, cap = carry
-        J_inv = _scalar_inverse(J_of(list(y)))
-        y, k, result, res, size, stalled = update(list(y), J_inv, F_of(list(y)), k, inf,
-                                                  newton, cap)
-
-        def inner_cond(c):
-            return (c[2] < 0) & ~c[5]
+        J_inv = _scalar_block_inverse(_rows(jac_fn(as_obj(y), args_s, batched=batched)))
 
         def inner_body(c):
             y, k, _, _, prev, _ = c
-            y, k, result, res, size, stalled = update(list(y), J_inv, F_of(list(y)), k, prev,
-                                                      newton, cap)
-            return tuple(y), k, result, res, size, stalled
+            return update(list(y), J_inv, k, prev, newton, cap)
 
-        y, k, result, res, _, stalled = jax.lax.while_loop(
-            inner_cond, inner_body, (tuple(_jnp(v, dtype) for v in y), k, result,
-                                     _jnp(res, dtype), _jnp(size, dtype), stalled | newton))
+        y, k, result, res, _, _ = jax.lax.while_loop(
+            lambda c: (c[2] < 0) & ~c[5], inner_body,
+            (y, k, jnp.asarray(-1, jnp.int32), inf, inf, jnp.asarray(False)))
+        # A chord phase that did not converge: restart from the guess with full Newton.
         fallback = ~newton & (result < 0)
         y = tuple(jnp.where(fallback, a, b) for a, b in zip(y0_s, y, strict=True))
         cap = jnp.where(fallback, k + solver.max_steps, cap)
@@ -833,7 +797,30 @@ def _jnp(v, dtype):
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(0, 1))
 def _scalar_core(fn, solver, y0, args):
-    return _iterate_scalar(fn, y0, args, solver)
+    # One trajectory and a batch want different programs (ScalarFunction): the layout is
+    # chosen by batching, which the loops' bodies cannot see.
+    programs = _scalar_programs(fn, y0, args)
+    batched_jaxprs = {}  # JAX batches a loop's body until its carry settles: trace once
+
+    @jax.custom_batching.custom_vmap
+    def solve(y0, args):
+        return _iterate_scalar(programs, y0, args, solver)
+
+    @solve.def_vmap
+    def _solve_batched(axis_size, in_batched, y0, args):
+        in_axes = tuple(jax.tree.map(lambda b: 0 if b else None, tuple(in_batched)))
+        key = (axis_size, jax.tree.structure(in_axes), tuple(jax.tree.leaves(
+            in_axes, is_leaf=lambda x: x is None)))
+        if key not in batched_jaxprs:
+            batched_jaxprs[key] = jax.make_jaxpr(jax.vmap(
+                lambda y0, args: _iterate_scalar(programs, y0, args, solver, batched=True),
+                in_axes=in_axes, axis_size=axis_size))(y0, args)
+        closed = batched_jaxprs[key]
+        out = jax.core.eval_jaxpr(closed.jaxpr, closed.consts, *jax.tree.leaves((y0, args)))
+        out = tuple(out)
+        return out, (True,) * len(out)
+
+    return solve(y0, args)
 
 
 @_scalar_core.defjvp
@@ -849,7 +836,7 @@ def _scalar_core_jvp(fn, solver, primals, tangents):
 
     dF_fn = sc.ScalarFunction(dF, y, args, args_dot)
     y_s, a_s, ad_s = sc.split(y), jax.tree.map(sc.split, args), jax.tree.map(sc.split, args_dot)
-    J_inv = _scalar_inverse(_rows(jac_fn(y_s, a_s)))
+    J_inv = _scalar_block_inverse(_rows(jac_fn(y_s, a_s)))
     y_dot = [sc.neg(v) for v in _scalar_matvec(J_inv, list(dF_fn(y_s, a_s, ad_s)))]
     y_dot = jnp.stack([_jnp(v, y.dtype) for v in y_dot])
     float0 = jax.dtypes.float0
@@ -859,3 +846,69 @@ def _scalar_core_jvp(fn, solver, primals, tangents):
         np.zeros(k.shape, float0),
         jnp.zeros_like(res),
     )
+
+
+def _scalar_adjugate_inverse(A):
+    """Inverse of a 1x1, 2x2 or 3x3 matrix of scalars by cofactors: a few products each,
+    no chain of dependent eliminations (which XLA would recompute in every consumer)."""
+    m = len(A)
+    one = sc.constant(1.0, np.float64)
+    if m == 1:
+        return [[sc.div(one, A[0][0])]]
+    if m == 2:
+        (a, b), (c, d) = A
+        idet = sc.div(one, sc.sub(sc.mul(a, d), sc.mul(b, c)))
+        return [[sc.mul(d, idet), sc.neg(sc.mul(b, idet))],
+                [sc.neg(sc.mul(c, idet)), sc.mul(a, idet)]]
+
+    def cof(i, j):
+        r = [k for k in range(3) if k != i]
+        c = [k for k in range(3) if k != j]
+        minor = sc.sub(sc.mul(A[r[0]][c[0]], A[r[1]][c[1]]), sc.mul(A[r[0]][c[1]], A[r[1]][c[0]]))
+        return minor if (i + j) % 2 == 0 else sc.neg(minor)
+
+    C = [[cof(i, j) for j in range(3)] for i in range(3)]
+    det = sc.add(sc.add(sc.mul(A[0][0], C[0][0]), sc.mul(A[0][1], C[0][1])),
+                 sc.mul(A[0][2], C[0][2]))
+    idet = sc.div(one, det)
+    return [[sc.mul(C[j][i], idet) for j in range(3)] for i in range(3)]
+
+
+def _scalar_matmul(A, B):
+    return [[_dot([A[i][k] for k in range(len(B))], [B[k][j] for k in range(len(B))])
+             for j in range(len(B[0]))] for i in range(len(A))]
+
+
+def _dot(a, b):
+    acc = sc.constant(0.0, np.float64)
+    for x, y in zip(a, b, strict=True):
+        acc = sc.add(acc, sc.mul(x, y))
+    return acc
+
+
+def _scalar_block_inverse(A):
+    """Inverse by blocks of at most 3: ``[[P, Q], [R, S]]⁻¹`` through the Schur complement
+    ``T = S − R P⁻¹ Q`` (``P`` the leading 3x3 block, the rotational unknowns of the
+    Lie-group VIs), each small block inverted by cofactors. No pivoting: for the Newton
+    matrices of the VIs, the kinetic-energy Hessian plus O(h) terms, ``P`` and ``T`` are
+    near positive definite; a singular block gives non-finite entries (reported by the
+    solver as non-finite)."""
+    m = len(A)
+    if m <= 3:
+        return _scalar_adjugate_inverse(A)
+    P = [row[:3] for row in A[:3]]
+    Q = [row[3:] for row in A[:3]]
+    R = [row[:3] for row in A[3:]]
+    S = [row[3:] for row in A[3:]]
+    Pi = _scalar_adjugate_inverse(P)
+    PiQ = _scalar_matmul(Pi, Q)
+    RPi = _scalar_matmul(R, Pi)
+    T = [[sc.sub(S[i][j], _dot(R[i], [PiQ[k][j] for k in range(3)])) for j in range(m - 3)]
+         for i in range(m - 3)]
+    Ti = _scalar_block_inverse(T) if m - 3 > 3 else _scalar_adjugate_inverse(T)
+    top_right = [[sc.neg(v) for v in row] for row in _scalar_matmul(PiQ, Ti)]
+    bottom_left = [[sc.neg(v) for v in row] for row in _scalar_matmul(Ti, RPi)]
+    corr = _scalar_matmul(PiQ, [[sc.neg(v) for v in row] for row in bottom_left])
+    top_left = [[sc.add(Pi[i][j], corr[i][j]) for j in range(3)] for i in range(3)]
+    return ([top_left[i] + top_right[i] for i in range(3)]
+            + [bottom_left[i] + Ti[i] for i in range(m - 3)])

@@ -120,7 +120,6 @@ _ELEMENTWISE = set(_NUMPY_UNARY) | set(_NUMPY_BINARY) | {
     "integer_pow", "convert_element_type", "select_n", "clamp", "copy", "copy_p", "rsqrt",
     "cbrt", "logistic", "erf", "erfc", "erf_inv", "exp2", "asinh", "acosh", "atanh",
     "round", "nextafter", "reduce_precision", "xor", "lgamma", "digamma",
-    "optimization_barrier",
 }
 
 
@@ -484,10 +483,17 @@ def _eval_eqn(eqn, invals) -> list[np.ndarray]:
         return outs
     if name == "while":
         return _while(eqn, invals)
+    if name in _IDENTITY:
+        return list(invals)
     raise NotImplementedError(
         f"scalarize: primitive {name!r} is not supported (shapes "
         f"{[v.aval.str_short() for v in eqn.invars]})"
     )
+
+
+#: Primitives that only annotate placement (values unchanged): the identity on scalars.
+_IDENTITY = {"reshard", "sharding_constraint", "mesh_cast", "pvary", "device_put",
+             "copy", "copy_p", "optimization_barrier"}
 
 
 def _reduce_identity(op_name, dtype, shape):
@@ -577,12 +583,18 @@ class ScalarFunction:
         """Operations in the scalar program."""
         return len(self.program.jaxpr.eqns)
 
-    def __call__(self, *scalar_args):
+    def __call__(self, *scalar_args, batched: bool | None = None):
+        """``batched``: materialise the shared values (see the class docstring); default:
+        when called under ``vmap`` (not visible inside a loop's body: pass it there)."""
         leaves = self.in_tree.flatten_up_to(scalar_args)
         consts = [split(c) for c in self.traced_consts]
         flat = _flatten([np.asarray(x, dtype=object) for x in consts + list(leaves)])
-        outs = _replay(self.program, flat, self.keep if _under_vmap() else frozenset())
+        batched = _under_vmap() if batched is None else batched
+        one = _runtime_one(flat) if batched else None
+        outs = _replay(self.program, flat, self.keep if batched else frozenset(), one)
         outs = [self.const_outputs.get(i, v) for i, v in enumerate(outs)]
+        if one is not None:
+            outs = [v if _is_const(v) else v / one for v in outs]
         return jax.tree.unflatten(self.out_tree, _unflatten(outs, self.out_avals))
 
 
@@ -620,7 +632,7 @@ def _materialization_points(jaxpr) -> frozenset:
     return frozenset(keep)
 
 
-def _replay(closed, flat, keep):
+def _replay(closed, flat, keep, one=None):
     """Evaluate a scalar program on scalars (folding with call-site constants)."""
     jaxpr = closed.jaxpr
     env: dict = {}
@@ -634,7 +646,6 @@ def _replay(closed, flat, keep):
         env[var] = val
     for var, val in zip(jaxpr.invars, flat, strict=True):
         env[var] = val
-    kept = []
     for eqn in jaxpr.eqns:
         invals = [read(v) for v in eqn.invars]
         name = eqn.primitive.name
@@ -645,18 +656,26 @@ def _replay(closed, flat, keep):
             outs = eqn.primitive.bind(*subfuns, *[_operand(x) for x in invals], **params)
             outs = outs if eqn.primitive.multiple_results else [outs]
         for var, val in zip(eqn.outvars, outs, strict=True):
-            if var in keep and not _is_const(val):
-                val = _keep(val)
-                kept.append(val)
+            if one is not None and var in keep and not _is_const(val):
+                val = val / one
             env[var] = val
     return [read(v) for v in jaxpr.outvars]
 
 
-def _keep(x):
-    """``x`` computed once: an ``optimization_barrier`` keeps XLA from fusing its
-    producers into every consumer (it duplicates cheap operations into each kernel that
-    reads them, which for long chains of shared scalar arithmetic multiplies the work)."""
-    return lax.optimization_barrier(x)
+def _runtime_one(flat):
+    """A one that XLA cannot fold, made from the first traced input ``x`` as ``0 x + 1``
+    (XLA keeps ``0 x`` for floating point: it is NaN for a non-finite ``x``, and so is
+    then every value of that trajectory, which is failed anyway).
+
+    Dividing a value by it materialises the value: XLA's fusion duplicates cheap
+    operations into every kernel that reads them (under ``vmap`` long chains of shared
+    scalar arithmetic were recomputed several times over) but not a division, so the
+    value becomes one kernel's output. (An ``optimization_barrier`` has no such effect,
+    and one around a constant is folded away.)"""
+    for x in flat:
+        if not _is_const(x) and jnp.issubdtype(jnp.result_type(x), jnp.floating):
+            return x * 0 + 1
+    return None
 
 
 def _under_vmap() -> bool:

@@ -13,6 +13,7 @@ from .composition import (
     parse_method,
     resolve_method,
     with_chord_matrix,
+    with_scalar_newton,
 )
 from .fused import FusedCarPendulum, fused_method
 from .galerkin import GalerkinVI
@@ -72,4 +73,5 @@ __all__ = [
     "parse_method",
     "resolve_method",
     "with_chord_matrix",
+    "with_scalar_newton",
 ]

@@ -596,3 +596,23 @@ def with_chord_matrix(method: AbstractIntegrator, chord_matrix: str) -> Abstract
         return dataclasses.replace(
             method, base=dataclasses.replace(method.base, chord_matrix=chord_matrix))
     return method
+
+
+def with_scalar_newton(method: AbstractIntegrator) -> AbstractIntegrator:
+    """``method`` with its Lie-group VI steps solved on scalars (``Newton(scalar=True)``,
+    :mod:`lgvi_jax.scalarize`), also inside a composition, where the chord matrix is the
+    exact one; any other method is returned unchanged. The same solutions to round-off."""
+    import dataclasses
+
+    from .lie import AbstractLieVI
+
+    def scalar(vi):
+        if vi.chord_matrix != "exact":
+            return vi
+        return dataclasses.replace(vi, newton=dataclasses.replace(vi.newton, scalar=True))
+
+    if isinstance(method, AbstractLieVI):
+        return scalar(method)
+    if isinstance(method, Composition) and isinstance(method.base, AbstractLieVI):
+        return dataclasses.replace(method, base=scalar(method.base))
+    return method

@@ -594,13 +594,14 @@ class FusedCarPendulum(AbstractIntegrator):
         return new_state, StepInfo(newton_steps=its, result=result, residual=residual_norm)
 
 
-ENGINES = ("auto", "general", "fused")
+ENGINES = ("auto", "general", "fused", "scalar")
 
 
 def fused_method(name: str, model, engine: str = "auto",
                  chord: str = "exact") -> FusedCarPendulum | None:
     """The fused step for method ``name`` on ``model`` under the engine choice ``engine``
-    (``"auto"``: fused where one exists, ``"general"``: never, ``"fused"``: required), or
+    (``"auto"``: fused where one exists, ``"general"``/``"scalar"``: never, ``"fused"``:
+    required), or
     ``None`` for the general engine. ``chord`` is the general engine's chord matrix: asking
     for ``"mass"`` explicitly selects the general engine under ``"auto"``. Raises
     ``ValueError`` (naming the option) when ``engine="fused"`` cannot be honoured."""
@@ -616,7 +617,7 @@ def fused_method(name: str, model, engine: str = "auto",
             raise ValueError("--engine fused: --chord applies to the general engine only; "
                              "drop --chord or use --engine general")
         return FusedCarPendulum(name)
-    if engine == "general" or not available or chord != "exact":
+    if engine in ("general", "scalar") or not available or chord != "exact":
         return None
     return FusedCarPendulum(name)
 
