@@ -175,9 +175,12 @@ class Newton(eqx.Module):
             )
         for name in ("rtol", "atol"):
             value = getattr(self, name)
+            if isinstance(value, jax.core.Tracer):  # a solver rebuilt under jit: checked before
+                continue
             if not isinstance(value, (float, int)) or not np.isfinite(value) or value < 0:
                 raise ValueError(f"Newton: {name} must be a finite number >= 0, got {value!r}")
-        if self.rtol == 0 and self.atol == 0:
+        concrete = not any(isinstance(v, jax.core.Tracer) for v in (self.rtol, self.atol))
+        if concrete and self.rtol == 0 and self.atol == 0:
             raise ValueError("Newton: rtol and atol cannot both be 0")
         if not isinstance(self.max_steps, int) or self.max_steps < 1:
             raise ValueError(f"Newton: max_steps must be an integer >= 1, got {self.max_steps!r}")
@@ -581,6 +584,17 @@ def _newton_core(fn, solver, y0, args, jac0):
     return _iterate(f, y0, solver, jac0)
 
 
+def _solution_tangents(y, result, k, res, y_dot):
+    """The primal and tangent outputs of a solve's JVP rule: only the root has a tangent."""
+    float0 = jax.dtypes.float0
+    return (y, result, k, res), (
+        y_dot,
+        np.zeros(result.shape, float0),
+        np.zeros(k.shape, float0),
+        jnp.zeros_like(res),
+    )
+
+
 @_newton_core.defjvp
 def _newton_core_jvp(fn, solver, primals, tangents):
     # The root does not depend on y0 or on the chord matrix jac0: only args' tangents count.
@@ -591,13 +605,7 @@ def _newton_core_jvp(fn, solver, primals, tangents):
     J = jax.jacfwd(lambda z: fn(z, args))(y)
     _, dF = jax.jvp(lambda a: fn(y, a), (args,), (args_dot,))
     y_dot = -small_solve(J, dF)
-    float0 = jax.dtypes.float0
-    return (y, result, k, res), (
-        y_dot,
-        np.zeros(result.shape, float0),
-        np.zeros(k.shape, float0),
-        jnp.zeros_like(res),
-    )
+    return _solution_tangents(y, result, k, res, y_dot)
 
 
 def newton_solve(
@@ -839,13 +847,7 @@ def _scalar_core_jvp(fn, solver, primals, tangents):
     J_inv = _scalar_block_inverse(_rows(jac_fn(y_s, a_s)))
     y_dot = [sc.neg(v) for v in _scalar_matvec(J_inv, list(dF_fn(y_s, a_s, ad_s)))]
     y_dot = jnp.stack([_jnp(v, y.dtype) for v in y_dot])
-    float0 = jax.dtypes.float0
-    return (y, result, k, res), (
-        y_dot,
-        np.zeros(result.shape, float0),
-        np.zeros(k.shape, float0),
-        jnp.zeros_like(res),
-    )
+    return _solution_tangents(y, result, k, res, y_dot)
 
 
 def _scalar_adjugate_inverse(A):

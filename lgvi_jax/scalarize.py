@@ -251,14 +251,6 @@ def _operand(a):
     return a
 
 
-def _add(a, b):
-    return _apply("add", {}, [a, b], np.result_type(_dt(a), _dt(b)))
-
-
-def _mul(a, b):
-    return _apply("mul", {}, [a, b], np.result_type(_dt(a), _dt(b)))
-
-
 def _dt(x):
     return x.dtype if _is_const(x) else jnp.result_type(x)
 
@@ -712,26 +704,8 @@ def _binary(name):
     return op
 
 
-def _compare(name):
-    def op(a, b):
-        dtype = np.result_type(_dt(a), _dt(b))
-        return _apply(name, {}, [_cast(a, dtype), _cast(b, dtype)], np.bool_)
-    op.__name__ = name
-    return op
-
-
-def _cast(x, dtype):
-    if _is_const(x):
-        return _const(x, dtype)
-    if jnp.result_type(x) == dtype:
-        return x
-    return _apply("convert_element_type", {"new_dtype": dtype, "weak_type": False,
-                                            "sharding": None}, [x], dtype)
-
-
 add, sub, mul, div = _binary("add"), _binary("sub"), _binary("mul"), _binary("div")
 maximum = _binary("max")
-gt, ge, lt, le = _compare("gt"), _compare("ge"), _compare("lt"), _compare("le")
 
 
 def neg(a):
@@ -746,22 +720,8 @@ def logical_and(a, b):
     return _apply("and", {}, [a, b], np.bool_)
 
 
-def logical_or(a, b):
-    return _apply("or", {}, [a, b], np.bool_)
-
-
-def logical_not(a):
-    return _apply("not", {}, [a], np.bool_)
-
-
 def isfinite(a):
     return _apply("is_finite", {}, [a], np.bool_)
-
-
-def select(pred, on_true, on_false):
-    """``on_true`` where ``pred``, else ``on_false`` (``lax.select``)."""
-    dtype = np.result_type(_dt(on_true), _dt(on_false))
-    return _apply("select_n", {}, [pred, _cast(on_false, dtype), _cast(on_true, dtype)], dtype)
 
 
 def constant(value, dtype) -> np.generic:

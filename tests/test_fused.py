@@ -132,7 +132,10 @@ def test_very_large_steps_restart_broyden_where_the_chord_stalls(car):
     method = fused.FusedCarPendulum("hamel-exact")
     states = initial_conditions(model, s0, 256, 0.3, seed=1)
     res = run_batch(model, method, states, 0.2, 50)
-    assert int(np.sum(res["result"] != 0)) == 0
+    # At the edge of convergence another rounding (CPU, XLA version) may tip a trajectory
+    # over: 256 of 256 converge in both the default and the --alt-numerics compilation
+    # (measured); at most 2 failures are allowed, against 252 without the restart.
+    assert int(np.sum(res["result"] != 0)) <= 2
     # One trajectory (the packed loop, its restart under a scalar cond) takes the same
     # steps as the batch (the batch-wide cond): three steps of the first four states.
     some = jax.tree.map(lambda x: x[:4], states)
