@@ -14,7 +14,7 @@ import pytest
 
 from lgvi_jax import _cache
 
-ARGS = ["simulate", "heavy-top", "--method", "lgvi", "--dt", "0.01", "--t-final", "2"]
+ARGS = ["simulate", "oscillator", "--method", "gl4", "--dt", "0.01", "--t-final", "2"]
 
 
 def _env(cache) -> dict:
@@ -76,5 +76,5 @@ def test_repeated_and_concurrent_runs_share_the_cache(tmp_path):
     ref = np.load(tmp_path / "a.npz")
     for name in ("b", "c", "d"):
         data = np.load(tmp_path / f"{name}.npz")
-        for key in ("R", "mu", "energy"):
+        for key in ("q", "p", "energy"):
             np.testing.assert_array_equal(data[key], ref[key])
