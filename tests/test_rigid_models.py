@@ -55,8 +55,12 @@ def test_car_pendulum_closed_form_inverse_legendre_matches_autodiff(seed):
         mu, p = model.momenta(R, w, q, v)
         for a, b in zip(model.velocities(R, mu, q, p), Base.velocities(model, R, mu, q, p),
                         strict=True):
-            # two different eliminations (3x3 and 5x5): a few ulps of |ω| ~ 1
-            np.testing.assert_allclose(a, b, rtol=1e-13, atol=1e-14)
+            # Two different eliminations (3x3 Schur complement and 5x5): each within
+            # ~n eps κ(M) ‖x‖ of the exact solution (n = 5, κ(M) <= 1e2 for these states),
+            # ~1e-13 ‖x‖, shared by every component, so bounded relative to the largest:
+            # 1e-12 ‖x‖_max. Worst measured 4.1e-14 at ‖x‖_max ~ 1 (--alt-numerics).
+            np.testing.assert_allclose(a, b, rtol=0,
+                                       atol=1e-12 * float(np.max(np.abs(np.asarray(b)))))
         state = RigidState(R=jnp.asarray(R), mu=mu, q=jnp.asarray(q), p=p)
         assert float(model.energy(state)) == pytest.approx(float(Base.energy(model, state)),
                                                            rel=1e-13)

@@ -267,12 +267,12 @@ def test_scalar_engine_batches_over_states_and_parameters():
 
 
 def test_scalar_engine_gradients_equal_the_array_engine():
-    model = lj.HeavyTop()
+    model = lj.FreeRigidBody()  # the smallest program: the gradient compiles fastest
     s0 = model.default_state()
 
     def loss(J, method):
         m = eqx.tree_at(lambda m: m.J, model, J)
-        traj = lj.simulate(m, method, s0, 1e-2, 10)
+        traj = lj.simulate(m, method, s0, 2e-2, 10)
         return traj.state.mu[-1, 0] + traj.state.R[-1, 0, 2]
 
     g_array = jax.grad(loss)(model.J, LGVI())
@@ -290,7 +290,7 @@ def test_large_steps_converge_as_with_the_pivoted_array_solve():
     model = lj.CarPendulum()
     states = initial_conditions(model, model.default_state(), 64, 0.3, 1)
     method = HamelVI()
-    ok = [run_batch(model, m, states, 0.2, 50)["result"] == 0
+    ok = [run_batch(model, m, states, 0.2, 30)["result"] == 0
           for m in (method, with_scalar_newton(method))]
     assert 0 < int(np.sum(ok[0])) < 64  # a regime where some fail
     np.testing.assert_array_equal(ok[1], ok[0])
