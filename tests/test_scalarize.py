@@ -100,6 +100,18 @@ def test_structural_zeros_are_folded_away():
     np.testing.assert_allclose([float(x) for x in out], [1.0, 2.0, 3.0])
 
 
+def test_common_subexpressions_are_merged_and_dead_code_removed():
+    # x*y and y*x are one product, the sine is never read: one product, one sum remain,
+    # and the value is that of the original function.
+    def f(x, y):
+        unused = jnp.sin(x)  # noqa: F841
+        return x * y + y * x
+
+    sf = ScalarFunction(f, 1.0, 2.0)
+    assert sf.size == 2
+    assert float(sf(split(jnp.asarray(3.0)), split(jnp.asarray(5.0)))[()]) == 30.0
+
+
 def test_unsupported_primitive_is_named():
     with pytest.raises(NotImplementedError, match="argmax"):
         scalarize(lambda x: jnp.argmax(x))(jnp.arange(3.0))
