@@ -8,6 +8,7 @@ recorded in it), prints what failed, and exits with status 1.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import os
@@ -316,7 +317,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
         f"{len(config.dts)} step(s) on {len(devices)} {devices[0].platform} device(s)"
         + where)
     try:
-        from .integrators import with_chord_matrix, with_scalar_newton
+        from .integrators import Composition, with_chord_matrix, with_scalar_newton
 
         def make_method(name):
             fused = fused_method(name, model, config.engine, config.chord)
@@ -325,6 +326,8 @@ def cmd_sweep(args: argparse.Namespace) -> int:
             method = with_chord_matrix(scene.method(name), config.chord)
             if config.engine in ("auto", "scalar"):
                 method = with_scalar_newton(method)
+            elif isinstance(method, Composition):  # general: the array engine throughout
+                method = dataclasses.replace(method, scalar=False)
             return method
 
         summary = run_sweep(config, model, state0, make_method, Path(args.out),
