@@ -29,6 +29,7 @@ import jax
 import numpy as np
 
 import lgvi_jax as L
+from lgvi_jax._io import atomic_write_text
 from lgvi_jax.integrators import LGVI, RKMK4, SCHEMES, compose
 from lgvi_jax.reference import HandReference, paper_scene
 
@@ -121,7 +122,7 @@ def run(out: Path, *, quick: bool = False, dt: float = 0.01, steps: int | None =
                         "device": str(jax.devices()[0]), "date": time.strftime("%Y-%m-%d")},
         "rows": rows,
     }
-    (out / "bench_composition.json").write_text(json.dumps(result, indent=2))
+    atomic_write_text(out / "bench_composition.json", json.dumps(result, indent=2))
     lines = [
         f"# Composed steps against their stages (car-pendulum, h = {dt:g}, {n} steps)",
         "",
@@ -145,7 +146,7 @@ def run(out: Path, *, quick: bool = False, dt: float = 0.01, steps: int | None =
             f"{r['newton_per_substep']:.2f} | "
             f"{r['steps_per_second']:.3g} | {r['compile_s']:.2f}, {r['compile_cpu_s']:.2f} | "
             f"{fmt(r['config_error_T1'], '.2e')} |")
-    (out / "bench_composition.md").write_text("\n".join(lines) + "\n")
+    atomic_write_text(out / "bench_composition.md", "\n".join(lines) + "\n")
     return result
 
 

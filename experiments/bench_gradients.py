@@ -32,6 +32,7 @@ import jax
 import jax.numpy as jnp
 
 import lgvi_jax as lj
+from lgvi_jax._io import atomic_write_text
 
 
 def _memory(compiled) -> dict[str, int]:
@@ -128,8 +129,8 @@ def run(out_dir, quick: bool = False, log: Callable = print) -> dict:
                      f"{row['peak_over_forward']:.1f} | {row['run_s'] * 1e3:.0f} ms | "
                      f"{row['compile_s']:.1f} s | {diff_text} |")
     text = "\n".join(lines) + "\n"
-    (out_dir / "bench_gradients.md").write_text(text)
-    (out_dir / "bench_gradients.json").write_text(json.dumps(results, indent=1) + "\n")
+    atomic_write_text(out_dir / "bench_gradients.md", text)
+    atomic_write_text(out_dir / "bench_gradients.json", json.dumps(results, indent=1) + "\n")
     log(text)
     return results
 

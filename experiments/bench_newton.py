@@ -24,6 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import lgvi_jax
+from lgvi_jax._io import atomic_write_text
 from lgvi_jax.integrators import GalerkinVI, GaussLegendre
 from lgvi_jax.models import HarmonicOscillator
 from lgvi_jax.newton import Newton, newton_solve
@@ -103,8 +104,8 @@ def run(out_dir: Path | str) -> dict:
                  f"{base / v['us_per_step']:.2f}x)" for v in row.values()]
         lines.append(f"| oscillator step, {label} | " + " | ".join(cells) + " |")
     table = "\n".join(lines) + "\n\n(speed-up over the LU baseline in parentheses)\n"
-    (out / "bench_newton.md").write_text(table)
-    (out / "bench_newton.json").write_text(json.dumps(results, indent=2))
+    atomic_write_text(out / "bench_newton.md", table)
+    atomic_write_text(out / "bench_newton.json", json.dumps(results, indent=2))
     print(table)
     return results
 

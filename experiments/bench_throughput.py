@@ -43,6 +43,7 @@ import jax
 import numpy as np
 
 import lgvi_jax as lj
+from lgvi_jax._io import atomic_write_json, atomic_write_text
 from lgvi_jax.sweep import batch_arguments, initial_conditions
 
 METHODS = ("lgvi", "hamel", "hamel-cayley", "hamel-exact")
@@ -223,8 +224,8 @@ def run(out_dir: Path | str, quick: bool = False, log: Callable = print, *,
     if long_run:
         results["long_run"] = [_long_run_memory(n, log)
                                for n in ((10_000, 100_000) if quick else (100_000, 1_000_000))]
-    (out_dir / "bench.json").write_text(json.dumps(results, indent=1))
-    (out_dir / "bench.md").write_text(_markdown(results))
+    atomic_write_text(out_dir / "bench.md", _markdown(results))
+    atomic_write_json(out_dir / "bench.json", results)
     log(f"wrote {out_dir / 'bench.json'} and {out_dir / 'bench.md'}")
     return results
 

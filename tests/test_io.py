@@ -3,7 +3,9 @@ ends with the mode ``open(path, "w")`` gives, ``0o666 & ~umask``, never mkstemp'
 
 import json
 import os
+import re
 import stat
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -97,3 +99,21 @@ def test_cli_outputs_get_the_plain_open_mode(tmp_path, capsys, umask):
             "chunks/verlet__dt0__0000002-0000003.npz"} == names
     for p in files:
         assert mode(p) == expected, p.name
+
+
+def test_no_result_file_is_written_in_place():
+    """Every file the library, the command line and the experiment scripts write goes
+    through lgvi_jax._io (a temporary file renamed over the destination): no
+    ``write_text``/``write_bytes`` or ``open(..., "w")`` outside it, which an interrupted
+    run would leave truncated. (Figures are saved by matplotlib's ``savefig``, not
+    covered here.)"""
+    root = Path(__file__).resolve().parent.parent
+    in_place = re.compile(r"\.write_(text|bytes)\(|\bopen\([^)]*[\"'][wax]b?\+?[\"']")
+    files = {p.resolve() for p in [*(root / "lgvi_jax").rglob("*.py"),
+                                   *(root / "experiments").glob("*.py")]}
+    assert len(files) > 20  # the scan sees the package and the experiments
+    offenders = [f"{path.relative_to(root)}:{i}: {line.strip()}"
+                 for path in sorted(files) if path.name != "_io.py"
+                 for i, line in enumerate(path.read_text().splitlines(), 1)
+                 if in_place.search(line)]
+    assert not offenders, offenders

@@ -1,7 +1,7 @@
 """The stability experiment: failure detection (energy blow-up, non-finite values, Newton
-not converging) on small cases, the bracketing of the limit, and a quick run."""
-
-import json
+not converging) on small cases and the bracketing of the limit. The quick run of the whole
+study, its files and limits, is tested on `lgvi-jax reproduce --full --quick`
+(tests/test_experiments.py), which runs it once."""
 
 import numpy as np
 import pytest
@@ -59,24 +59,3 @@ def test_find_limit_brackets_a_known_boundary():
     assert lim["non_monotone"] == [7.0]
     never = st.find_limit(lambda h: {"h": h, "failed": False}, grid, rtol=1e-3)
     assert never["limit"] is None and never["bracket"] == [8.0, None]
-
-
-def test_quick_run_writes_its_files(tmp_path):
-    res = st.run(tmp_path, quick=True, log=lambda *_: None)
-    for name in ("stability_oscillator.png", "stability_limits_oscillator.png",
-                 "stability_car_pendulum.png"):
-        assert (tmp_path / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", name
-    saved = json.loads((tmp_path / "results.json").read_text())
-    assert saved["quick"] is True and saved["environment"]["cpu_count"]
-    osc = res["oscillator"]["methods"]
-    # Measured against theory: below the linear limit nothing fails (RK4 loses energy,
-    # Verlet's error from q0 = 1, p0 = 0 stays below h²ω²/4 < 1), so the failing end of the
-    # bracket is past it; the stable end is within 1% of it (the quick bisection bracket,
-    # 1e-3, plus the steps the energy needs to grow tenfold within 2000 steps).
-    for name in ("rk4", "verlet"):
-        lo, hi = osc[name]["bracket_h_omega"]
-        theory = osc[name]["theory_h_omega"]
-        assert hi >= theory and lo <= theory * 1.01, name
-    assert osc["gl4"]["limit"] is None  # A-stable: never fails in the scanned range
-    summary = (tmp_path / "summary.md").read_text()
-    assert "measured h·ω" in summary and "reason at the limit" in summary

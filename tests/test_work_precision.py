@@ -1,6 +1,7 @@
 """The work-precision harness: its error measurement on a small case (a known-order method
 shows its order), the metrics against independent computations, running without diffrax,
-and a quick run writing its files."""
+diffrax's error. The quick run of the whole study, its files and values, are tested on
+`lgvi-jax reproduce --full --quick` (tests/test_experiments.py), which runs it once."""
 
 import json
 
@@ -60,22 +61,6 @@ def test_diffrax_error_is_measured(oscillator):
     assert not r["failed"] and r["position_error_t10"] < 1e-7 and r["n_steps"] > 0
 
 
-def test_quick_run_writes_its_files(tmp_path):
-    res = wp.run(tmp_path, quick=True, log=lambda *_: None)
-    for name in res["files"]:
-        assert (tmp_path / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", name
-    assert {"work_precision_car-paper.png", "energy_vs_time.png",
-            "invariants_long_run.png"} <= set(res["files"])
-    saved = json.loads((tmp_path / "results.json").read_text())
-    env = saved["environment"]
-    assert env["jax"] and env["cpu_count"] and env["date"]
-    assert saved["regimes"] and all("ranking" in g for g in saved["regimes"])
-    summary = (tmp_path / "summary.md").read_text()
-    assert "Winners per regime" in summary and "When to choose" in summary
-    if wp.diffrax is None:
-        assert "diffrax is not installed" in summary
-
-
 def test_reproduce_full_runs_the_full_stages(tmp_path, monkeypatch):
     import lgvi_jax.reproduce as rp
 
@@ -90,10 +75,9 @@ def test_reproduce_full_runs_the_full_stages(tmp_path, monkeypatch):
         (out / "summary.md").write_text(f"{out.name} summary\n")
         (out / "results.json").write_text(json.dumps({"quick": quick}))
 
-    # The real stages are exercised by the quick runs above; here only the wiring.
+    # The real stages run in tests/test_experiments.py (`reproduce --full --quick`, all
+    # three full stages); here only the wiring, with two of them.
     monkeypatch.setattr(rp, "STAGES", [])
-    # Only these two: the third full stage, identify_inertia, is not run by any test
-    # (its fits are covered by tests/test_identify.py, its script and figures are not).
     monkeypatch.setattr(rp, "FULL_STAGES", mine)
     monkeypatch.setattr(wp, "run", fake_run)
     from lgvi_jax.experiments import stability
