@@ -49,11 +49,15 @@ def figure(nrows: int = 1, ncols: int = 1, *, width: float = 7.0, height: float 
 
 
 def save(fig, path: Path | str) -> Path:
-    """Save ``fig`` as PNG (150 dpi, tight) and close it."""
+    """Save ``fig`` (150 dpi, tight; the format from the suffix, PNG by default) through the
+    atomic writer, and close it."""
+    from ._io import atomic_write
+
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.tight_layout()
-    fig.savefig(path, dpi=150)
+    fmt = path.suffix[1:].lower() or "png"
+    atomic_write(path, lambda fh: fig.savefig(fh, format=fmt, dpi=150))
     _pyplot().close(fig)
     return path
 
