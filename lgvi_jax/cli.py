@@ -266,7 +266,8 @@ def _start_distributed(args: argparse.Namespace) -> int:
     try:
         index, _ = initialize(args.coordinator, args.num_processes, args.process_id,
                               auto=args.distributed == "auto",
-                              heartbeat_timeout=args.heartbeat_timeout)
+                              heartbeat_timeout=args.heartbeat_timeout,
+                              prog=f"{PROG} sweep")
     except DistributedError as err:
         raise UsageError(str(err)) from None
     return index
@@ -586,7 +587,7 @@ def build_parser() -> argparse.ArgumentParser:
                       "environment (Slurm, Open MPI), as jax.distributed.initialize() does")
     dist.add_argument("--heartbeat-timeout", type=_positive_int, metavar="S", default=60,
                       help="seconds without news from a process after which the others "
-                      "stop (default 60)")
+                      "stop with one line and exit status 3 (default 60)")
     sw.set_defaults(func=cmd_sweep)
 
     be = sub.add_parser("bench", help="throughput benchmark against the Numba baseline",
@@ -646,13 +647,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.command != "info":
         _cache.enable()  # compiled programs reused across runs (lgvi_jax._cache)
     try:
-        return args.func(args)
+        code = args.func(args)
     except UsageError as err:
         print(f"{PROG} {args.command}: error: {err}", file=sys.stderr)
-        return 2
+        code = 2
     except KeyboardInterrupt:
         print(f"{PROG} {args.command}: interrupted", file=sys.stderr)
-        return 130
+        code = 130
+    if args.command == "sweep":  # a distributed sweep that did not complete ends here
+        from .distributed import end_process
+
+        end_process(code)
+    return code
 
 
 if __name__ == "__main__":  # pragma: no cover

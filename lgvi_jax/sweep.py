@@ -684,7 +684,9 @@ def run_sweep(config: SweepConfig, model, state0, make_method: Callable[[str], A
     are written, process 0 writes the summary, CSV and plot, and every process returns
     the summary (with ``"processes"`` and ``"chunks_by_process"``). Arguments that differ
     between processes raise :class:`SweepError` in every process, naming the difference.
-    Only process 0 draws progress (of the whole sweep) and logs.
+    Only process 0 draws progress (of the whole sweep) and logs. The watchdog started by
+    :func:`lgvi_jax.distributed.initialize` (a process that stops responding ends the
+    others with one line and exit status 3) stops when this returns or raises.
     """
     if warn is None:
         if log is not None:
@@ -698,9 +700,17 @@ def run_sweep(config: SweepConfig, model, state0, make_method: Callable[[str], A
     out = Path(out)
     config.validate()
     if jax.process_count() > 1:
-        return _run_sweep_distributed(config, model, state0, make_method, out,
-                                      resume=resume, progress=progress, devices=devices,
-                                      log=log, warn=warn)
+        from .distributed import stop_watchdog
+
+        complete = False
+        try:
+            summary = _run_sweep_distributed(config, model, state0, make_method, out,
+                                             resume=resume, progress=progress,
+                                             devices=devices, log=log, warn=warn)
+            complete = True
+            return summary
+        finally:  # the others no longer watch this process (see Watchdog)
+            stop_watchdog("done" if complete else "left")
     manifest = prepare_out_dir(out, config, resume, warn=warn)
     devices = tuple(jax.devices() if devices is None else devices)
     plan = manifest["chunks"]
@@ -730,6 +740,15 @@ def run_sweep(config: SweepConfig, model, state0, make_method: Callable[[str], A
 
 def _differences(a: dict[str, Any], b: dict[str, Any]) -> list[str]:
     return [k for k in sorted(set(a) | set(b)) if a.get(k) != b.get(k)]
+
+
+def _why(err: BaseException) -> str:
+    """How a process of a distributed sweep ended, for the others: ``process I {this}``."""
+    if isinstance(err, KeyboardInterrupt):
+        return "was interrupted"
+    if isinstance(err, SweepError):
+        return f"failed: {err}"
+    return f"failed: {type(err).__name__}: {err}"
 
 
 def _run_sweep_distributed(config, model, state0, make_method, out: Path, *, resume,
@@ -762,8 +781,9 @@ def _run_sweep_distributed(config, model, state0, make_method, out: Path, *, res
             manifest = prepare_out_dir(out, config, resume, warn=warn)
             todo_pos, repaired = _find_todo(out, manifest["chunks"], model, state0, resume,
                                             warn)
-        except SweepError as err:
-            group.publish("prepared", {"error": str(err)})
+        except BaseException as err:
+            group.publish("prepared", {"error": str(err) if isinstance(err, SweepError)
+                                       else f"process 0 {_why(err)}"})
             raise
         group.publish("prepared", {"todo": todo_pos, "repaired": repaired})
     else:
@@ -809,10 +829,10 @@ def _run_sweep_distributed(config, model, state0, make_method, out: Path, *, res
 
             timings = _compute_chunks(mine, config, model, state0, make_method, out,
                                       devices, after_chunk)
-        except SweepError as err:
+        except BaseException as err:  # the others stop too, after their chunk
             try:
                 group.client.key_value_set(group._key("failed"), json.dumps(
-                    f"process {me} failed: {err}"))
+                    f"process {me} {_why(err)}"))
             except Exception:  # (another process reported first)
                 pass
             raise
@@ -853,8 +873,10 @@ def _run_sweep_distributed(config, model, state0, make_method, out: Path, *, res
     except SweepError as err:
         group.publish("summary", {"error": str(err)})
         raise
-    except Exception as err:
-        group.publish("summary", {"error": f"process 0 failed writing the summary: {err}"})
+    except BaseException as err:
+        why = ("was interrupted" if isinstance(err, KeyboardInterrupt) else
+               f"failed writing the summary: {err}")
+        group.publish("summary", {"error": f"process 0 {why}"})
         raise
     group.publish("summary", {"ok": True})
     return summary

@@ -1,11 +1,13 @@
 """Distributed sweeps: two real local processes (CPU) joined by jax.distributed through a
 coordinator on 127.0.0.1 divide a sweep's chunks, and give the single-process results;
-a killed process, a resume with 2 or 1 processes, an unreachable coordinator and
-mismatched arguments."""
+a killed process (the other ends with one line, exit 3), a killed coordinator, a resume with
+2 or 1 processes, an unreachable coordinator and mismatched arguments; the watchdog's
+verdicts on a fake key-value store."""
 
 import csv
 import json
 import os
+import re
 import shutil
 import signal
 import socket
@@ -16,7 +18,14 @@ import time
 
 import pytest
 
-from lgvi_jax.distributed import INITIALIZATION_TIMEOUT_S, DistributedError, initialize
+from lgvi_jax.distributed import (
+    EXIT_PROCESS_LOST,
+    INITIALIZATION_TIMEOUT_S,
+    DistributedError,
+    Watchdog,
+    _port_is_free,
+    initialize,
+)
 from lgvi_jax.sweep import KILL_HOOK_ENV
 
 #: A child sweep takes ~5-15 s here; a hung child fails the test instead of blocking.
@@ -40,10 +49,11 @@ def _env(**extra):
     return {**os.environ, "MPLBACKEND": "Agg", **extra}
 
 
-def _run_group(out, n=2, extra=(), extra_by_process=None, env_by_process=None):
+def _run_group(out, n=2, extra=(), extra_by_process=None, env_by_process=None, port=None):
     """Start ``n`` processes of one sweep; return their ``CompletedProcess``-like tuples
-    ``(returncode, stdout, stderr, seconds)`` in process order."""
-    port = _free_port()
+    ``(returncode, stdout, stderr, seconds)`` in process order, ``seconds`` from the start
+    to that process's end."""
+    port = _free_port() if port is None else port
     procs, start = [], time.monotonic()
     for i in range(n):
         dist = ["--coordinator", f"127.0.0.1:{port}", "--num-processes", str(n),
@@ -52,11 +62,23 @@ def _run_group(out, n=2, extra=(), extra_by_process=None, env_by_process=None):
         procs.append(subprocess.Popen(
             _cmd(out, [*extra, *dist, *more]), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
             text=True, env=_env(**(env_by_process or {}).get(i, {}))))
-    results = []
-    try:
-        for p in procs:
+    results: list = [None] * n
+
+    def wait(i, p):
+        try:
             stdout, stderr = p.communicate(timeout=TIMEOUT_S)
-            results.append((p.returncode, stdout, stderr, time.monotonic() - start))
+        except subprocess.TimeoutExpired:
+            p.kill()
+            stdout, stderr = p.communicate()
+        results[i] = (p.returncode, stdout, stderr, time.monotonic() - start)
+
+    threads = [threading.Thread(target=wait, args=(i, p), daemon=True)
+               for i, p in enumerate(procs)]
+    try:
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join(TIMEOUT_S + 10)
     finally:
         for p in procs:
             if p.poll() is None:
@@ -186,17 +208,36 @@ def test_distributed_auto_under_a_slurm_environment(tmp_path, reference):
     assert _rows(out) == _rows(reference)
 
 
+#: The watchdog timeout (--heartbeat-timeout) of the kill tests, and the most seconds a
+#: survivor may take after the death beyond it (it takes 1-2.5 s here: a poll or two of
+#: 1 s; JAX's own verdict, which these tests must not see, comes after 15-30 s).
+KILL_HEARTBEAT_S = 5
+KILL_MARGIN_S = 8
+RERUN = "rerun the same command with --resume to finish the sweep"
+
+
+def _assert_one_clean_line(err: str, expected: str) -> None:
+    """``err`` is exactly the line ``expected``: no Python traceback, no JAX log or C++
+    stack trace."""
+    assert err.strip().splitlines() == [expected], err[-3000:]
+    for junk in ("Traceback", "stack trace", "Check failure", "Terminating process"):
+        assert junk not in err, err[-3000:]
+    assert not re.search(r"^[IWEF]\d{4} ", err, re.MULTILINE), err[-3000:]  # JAX's log
+
+
 def test_killed_process_then_resume_with_two_and_with_one(tmp_path, reference):
     out = tmp_path / "killed"
     # Process 1 kills itself (SIGKILL) right after writing its first chunk; process 0
-    # must not hang: JAX's heartbeats end it within the heartbeat timeout.
-    (rc0, _, err0, t0), (rc1, _, _, _) = _run_group(
-        out, extra=["--heartbeat-timeout", "10"],
+    # must not hang: its watchdog ends it with one line and exit 3, KILL_HEARTBEAT_S after
+    # process 1's last heartbeat.
+    (rc0, _, err0, t0), (rc1, _, _, t1) = _run_group(
+        out, extra=["--heartbeat-timeout", str(KILL_HEARTBEAT_S)],
         env_by_process={1: {KILL_HOOK_ENV: "0"}})
     assert rc1 == -signal.SIGKILL
-    assert rc0 != 0
-    assert "another task died" in err0 or "heartbeat" in err0, err0[-2000:]
-    assert t0 < 120
+    assert rc0 == EXIT_PROCESS_LOST, err0[-3000:]
+    _assert_one_clean_line(err0, f"lgvi-jax sweep: process 1 stopped responding (no heartbeat "
+                                 f"for {KILL_HEARTBEAT_S} s); {RERUN}")
+    assert KILL_HEARTBEAT_S - 2 < t0 - t1 < KILL_HEARTBEAT_S + KILL_MARGIN_S, (t0, t1)
     assert not (out / "trajectories.csv").exists()
     written = sorted(p.name for p in (out / "chunks").glob("*.npz"))
     assert 1 <= len(written) < N_CHUNKS
@@ -217,6 +258,131 @@ def test_killed_process_then_resume_with_two_and_with_one(tmp_path, reference):
     assert done.returncode == 0, done.stderr
     assert json.loads(done.stdout)["chunks_skipped"] == len(written)
     assert _rows(copy) == _rows(reference)
+
+
+def test_killed_coordinator_ends_the_others_with_one_line(tmp_path):
+    """Process 0 (the coordinator) kills itself after its first chunk: its keeper holds
+    the connections open, so process 1's JAX client does not abort it at once and its
+    watchdog ends it with one line; the coordinator's port is free at once for a rerun."""
+    out = tmp_path / "killed0"
+    port = _free_port()
+    (rc0, _, _, t0), (rc1, out1, err1, t1) = _run_group(
+        out, extra=["--heartbeat-timeout", str(KILL_HEARTBEAT_S)],
+        env_by_process={0: {KILL_HOOK_ENV: "0"}}, port=port)
+    assert rc0 == -signal.SIGKILL
+    assert rc1 == EXIT_PROCESS_LOST, err1[-3000:]
+    _assert_one_clean_line(err1, "lgvi-jax sweep: lost the connection to the coordinator "
+                                 f"(process 0): no answer for {KILL_HEARTBEAT_S} s; {RERUN}")
+    assert out1 == ""
+    assert KILL_HEARTBEAT_S - 2 < t1 - t0 < KILL_HEARTBEAT_S + KILL_MARGIN_S, (t0, t1)
+    assert _port_is_free(port)
+    assert 1 <= len(list((out / "chunks").glob("*.npz"))) < N_CHUNKS
+
+
+class _FakeStore:
+    """The two key-value calls of the watchdog, in memory; ``fail`` makes them raise."""
+
+    def __init__(self):
+        self.kv, self.fail = {}, False
+
+    def key_value_set(self, key, value, allow_overwrite=False):
+        if self.fail:
+            raise RuntimeError("UNAVAILABLE: Socket closed\nmore detail")
+        assert allow_overwrite or key not in self.kv
+        self.kv[key] = value
+
+    def key_value_dir_get(self, prefix):
+        if self.fail:
+            raise RuntimeError("UNAVAILABLE: Socket closed\nmore detail")
+        return [(k, v) for k, v in list(self.kv.items()) if k.startswith(prefix)]
+
+
+@pytest.mark.parametrize("case", ["stale", "never", "stopped", "left", "coordinator"])
+def test_watchdog_verdicts(case, capfd):
+    """Process 1 of 3 watches processes 0 and 2 (fast timings): process 2 is done and
+    never judged; process 0 beats for a while, then ``case`` happens to it (or to the
+    store); the watchdog ends the process with one line and exit status 3 (recorded)."""
+    store, exits, keep_beating = _FakeStore(), [], threading.Event()
+    keep_beating.set()
+    timeout = 0.6
+    dog = Watchdog(store, 1, 3, timeout, grace_s=0.5, poll_s=0.05, prog="prog",
+                   exit=exits.append)
+    store.kv[Watchdog.PREFIX + "2"] = "done"
+
+    def beat():
+        n = 0
+        while keep_beating.is_set():
+            n += 1
+            store.kv[Watchdog.PREFIX + "0"] = f"alive {n}"
+            time.sleep(0.05)
+
+    if case != "never":
+        threading.Thread(target=beat, daemon=True).start()
+    start = time.monotonic()
+    dog.start()
+    time.sleep({"never": 0.15, "stale": 1.0}.get(case, 0.3))  # stale: beats > timeout
+    assert exits == [] or case == "never"
+    assert store.kv[Watchdog.PREFIX + "1"].startswith("alive")
+    keep_beating.clear()
+    time.sleep(0.1)
+    if case == "stopped":
+        store.kv[Watchdog.PREFIX + "0"] = "stopped process 7 stopped responding"
+    elif case == "left":
+        store.kv[Watchdog.PREFIX + "0"] = "left"
+    elif case == "coordinator":
+        store.fail = True
+    ended = time.monotonic()
+    while not exits and time.monotonic() - ended < 10:
+        time.sleep(0.02)
+    waited = time.monotonic() - ended
+    assert exits == [EXIT_PROCESS_LOST]
+    expected = {
+        "stale": f"process 0 stopped responding (no heartbeat for 0.6 s); {RERUN}",
+        "never": f"process 0 stopped responding (no heartbeat for 0.6 s); {RERUN}",
+        "stopped": "process 7 stopped responding",
+        "left": f"process 0 ended before the sweep was complete; {RERUN}",
+        "coordinator": "lost the connection to the coordinator (process 0): UNAVAILABLE: "
+                       f"Socket closed; {RERUN}",
+    }[case]
+    assert capfd.readouterr().err == f"prog: {expected}\n"
+    bound = {"left": 0.5, "stopped": 0.0, "coordinator": 0.0}.get(case, timeout)
+    assert waited < bound + 2.5, waited
+    if case == "never":
+        assert time.monotonic() - start > timeout
+    if case != "coordinator":  # the others are told why, before the exit
+        assert store.kv[Watchdog.PREFIX + "1"] == f"stopped {expected}"
+
+
+def test_watchdog_stop_and_leave(monkeypatch):
+    """``stop("done")`` leaves ``done`` and judges nothing more; ``leave`` ends a process
+    that did not complete at once, and process 0 only once the others have ended."""
+    store, exits = _FakeStore(), []
+    dog = Watchdog(store, 1, 2, 0.3, poll_s=0.02, exit=exits.append)
+    dog.start()
+    time.sleep(0.1)
+    dog.stop("done")
+    time.sleep(0.1)
+    assert store.kv[Watchdog.PREFIX + "1"] == "done"
+    time.sleep(0.4)  # process 0 never beat, but a stopped watchdog judges nothing
+    dog.leave(2)  # done: nothing to do
+    assert exits == []
+
+    monkeypatch.setattr("lgvi_jax.distributed._start_keeper", lambda linger: None)
+    store, exits = _FakeStore(), []
+    store.kv[Watchdog.PREFIX + "1"] = "alive 1"
+    dogs = [Watchdog(store, i, 2, 2.0, grace_s=1.0, poll_s=0.02, exit=exits.append)
+            for i in range(2)]
+    for d in dogs:
+        d.start()
+    time.sleep(0.1)
+    leaving = threading.Thread(target=dogs[0].leave, args=(130,))
+    leaving.start()  # process 0 leaves first: it waits for process 1
+    time.sleep(0.3)
+    assert exits == [] and store.kv[Watchdog.PREFIX + "0"] == "left"
+    dogs[1].leave(2)
+    assert exits == [2] and store.kv[Watchdog.PREFIX + "1"] == "left"
+    leaving.join(2)
+    assert exits == [2, 130]
 
 
 def test_mismatched_arguments_are_refused(tmp_path):
