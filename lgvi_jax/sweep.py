@@ -71,7 +71,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import so3
-from ._io import atomic_open, atomic_write_json, atomic_write_text, save_npz_atomic
+from ._io import atomic_open, atomic_write, atomic_write_json, atomic_write_text, save_npz_atomic
 from .newton import RESULTS
 from .progress import Progress
 from .simulate import guarded_step
@@ -990,4 +990,4 @@ def _plot(path: Path, config: SweepConfig, results) -> None:
                  f"(perturbation {config.perturb:g}, t = {config.t_final:g})", fontsize=10)
     ax.grid(alpha=0.3)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    atomic_write(path, lambda fh: fig.savefig(fh, format="png", dpi=120))
