@@ -316,16 +316,10 @@ def cmd_sweep(args: argparse.Namespace) -> int:
         f"{len(config.dts)} step(s) on {len(devices)} {devices[0].platform} device(s)"
         + where)
     try:
-        from .integrators import with_chord_matrix, with_scalar_newton
+        from .sweep import sweep_method
 
         def make_method(name):
-            fused = fused_method(name, model, config.engine, config.chord)
-            if fused is not None:
-                return fused
-            method = with_chord_matrix(scene.method(name), config.chord)
-            if config.engine in ("auto", "scalar"):
-                method = with_scalar_newton(method)
-            return method
+            return sweep_method(scene.name, model, name, config.engine, config.chord)
 
         summary = run_sweep(config, model, state0, make_method, Path(args.out),
                             resume=args.resume, progress=not quiet, log=log, warn=warn)
