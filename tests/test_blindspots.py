@@ -227,8 +227,9 @@ def test_bench_markdown_reports_the_measured_values(tmp_path):
 
 def test_bench_command_quick_run(tmp_path, capsys):
     """``lgvi-jax bench --quick`` end to end on one method, few steps and a small batch
-    (its quick parts: throughput and gradient; measured 35 s on a loaded 2-core machine,
-    Numba's compilation included): on the car-pendulum the fused step beside the Numba
+    (its quick parts: throughput and gradient; measured 41-43 s on a busy 2-core machine,
+    load average 3.5, where the previous quick run took 40 s; Numba's compilation and the
+    gradient's, 12 s, included): on the car-pendulum the fused step beside the Numba
     baseline, on the heavy top the scalar engine without one. bench.json holds positive
     throughputs, no failed trajectory, the same worst energy error on both sides (the same
     equations and diagnostics: to the solvers' tolerance), ratios that are JAX over Numba,
