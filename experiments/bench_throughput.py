@@ -1,33 +1,53 @@
-"""Throughput benchmark: the car-pendulum VIs in JAX against a compiled-loop Numba baseline.
+"""Benchmark of what users run: sweeps, gradients and fits, beside compiled-loop baselines.
 
-For every VI method, at h = 5e-3 over ``steps`` steps (10^4 by default), after compilation:
+Four parts (``lgvi-jax bench --out DIR``; writes ``bench.json`` and ``bench.md``):
 
-* one trajectory (``final_state``: no saved states, no batch axis),
-* a batch of ``batch`` trajectories (1024 by default; ``vmap``, sharded with ``shard_map``
-  over every device in ``jax.devices()``: on a CPU-only machine, one XLA host device per
-  core, see ``lgvi-jax bench --devices``),
-* the Numba baseline of the same method (``experiments/numba_lgvi.py`` for ``lgvi``,
-  ``experiments/numba_hamel.py`` for the Hamel methods: the discrete equations,
-  hand-derived and reduced to three unknowns, in plain loops with a warm-started Newton
-  (``lgvi``) or the engine's chord-then-Newton iteration (Hamel); the batch runs over all
-  cores, with ``prange`` or one GIL-free thread per core), in the same process and run.
+1. **Throughput of the sweep's work.** For each system (the car-pendulum and the heavy top),
+   method (``lgvi``, ``hamel``, ``hamel-cayley``, ``hamel-exact``, and the compositions
+   ``lgvi@4``, ``lgvi@6``, ``lgvi@8``) and engine, the batched rollout that ``lgvi-jax
+   sweep`` runs: :func:`lgvi_jax.sweep.batch_arguments` with ``kind="metrics"`` (the
+   energy error, every momentum map's drift, the orthogonality error and the Newton
+   iterations measured after every step), at h = 5e-3 over ``steps`` steps (10^4 by
+   default), for one trajectory (a sweep of one: one device) and for a batch (1024 by
+   default, sharded over every device in ``jax.devices()``: on a CPU-only machine one
+   XLA host device per core, ``lgvi-jax bench --devices``), from the sweep's initial
+   conditions (perturbation 0.01, seed 0). The method is built as the sweep builds it
+   (:func:`lgvi_jax.sweep.sweep_method`): ``--engines auto`` is the sweep's default (the
+   fused steps for the car-pendulum's four VIs, the autodiff engine on scalars otherwise),
+   ``scalar`` the autodiff engine on scalars everywhere, so the car-pendulum's VIs get a
+   row for each. Beside each car-pendulum row, the Numba baseline of the same method
+   (``experiments/numba_lgvi.py``, ``numba_hamel.py``: the same discrete equations,
+   hand-derived and reduced to three unknowns, scalar loops, the engine's chord-then-Newton
+   iteration; compositions as the same sub-steps) **with the same per-step diagnostics**
+   (``sweep_metrics``: the car-pendulum's energy, cart momentum, vertical angular momentum
+   and orthogonality error written in Numba, reduced as the sweep reduces them), one
+   trajectory on one core and the batch on all cores. The heavy top has no Numba baseline.
+2. **Gradient.** ``jax.grad`` of a loss of the final state with respect to the inertia
+   ``J``, through ``steps`` steps of one car-pendulum trajectory (``lgvi`` and ``hamel``;
+   the autodiff engine on arrays and on scalars), with the library's checkpointed rollout
+   (``simulate(..., checkpoint_every=K)``, K near the square root of the steps): forward
+   and gradient run times, their ratio, compile times.
+3. **Fit.** ``lgvi_jax.identify.fit`` with its defaults (``lgvi``, optax L-BFGS, the
+   autodiff engine on arrays) recovering the inertia from noise-free synthetic
+   observations (every 0.05 s over 5 s from the independent reference) at h = 5e-3: wall
+   time and the relative error of the recovered inertia.
+4. **Memory of long runs.** ``lgvi-jax simulate`` for 10^6 steps with ``--save-every
+   1000`` (and 10^5 for comparison) in child processes: their peak resident memory.
 
-Reported: steps per second (best of ``repeats`` timed runs), compile time (ahead of time,
-``lower().compile()``), XLA's memory estimate of the compiled batched program (arguments,
-outputs, temporaries) and the process's peak resident memory, and the ratio of our
-throughput to Numba's. A second part runs ``lgvi-jax simulate`` for 10^6 steps with
-``--save-every 1000`` (and 10^5 for comparison) in child processes and reports their peak
-resident memory, to show that a long run's memory does not grow with its length.
+Times are the best of up to ``repeats`` runs after compilation, fewer when the runs of a
+row already took :data:`TIME_BUDGET_S` (a batch of ``lgvi@8`` runs for minutes); the first
+run counts. Compile times are ahead of time (``lower().compile()``) and cold: ``lgvi-jax
+bench`` leaves the command line's persistent compilation cache off. The benchmark reports
+numbers and asserts nothing about them.
 
-Writes ``bench.json`` and ``bench.md`` into the output folder. Run:
-``lgvi-jax bench --out results/bench`` (or ``python experiments/bench_throughput.py``).
+Run: ``lgvi-jax bench --out results/bench`` (or ``python experiments/bench_throughput.py``).
 """
 
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
+import math
 import os
 import platform
 import resource
@@ -35,24 +55,54 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import equinox as eqx
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 import lgvi_jax as lj
 from lgvi_jax._io import atomic_write_json, atomic_write_text
-from lgvi_jax.sweep import batch_arguments, initial_conditions
+from lgvi_jax.sweep import batch_arguments, engine_name, initial_conditions, sweep_method
 
-METHODS = ("lgvi", "hamel", "hamel-cayley", "hamel-exact")
-#: Each method in the general engine with its default chord matrix (the Jacobian at the
-#: guess) and with the continuous Legendre matrix (``chord_matrix="mass"``), and as the
-#: fused scalar step (:class:`lgvi_jax.FusedCarPendulum`, what ``sweep`` uses by default
-#: for the car-pendulum): the same discrete equations and solutions.
-CHORDS = ("exact", "mass", "fused")
+SYSTEMS = ("car-pendulum", "heavy-top")
+METHODS = ("lgvi", "hamel", "hamel-cayley", "hamel-exact", "lgvi@4", "lgvi@6", "lgvi@8")
+#: The sweep engines timed (``lgvi-jax sweep --engine``); rows are kept once per engine
+#: they resolve to (on the heavy top ``auto`` is ``scalar``).
+ENGINES = ("auto", "scalar")
+ENGINE_CHOICES = ("auto", "general", "scalar", "fused")
+PARTS = ("throughput", "gradient", "fit")
+#: ``--quick``: a smoke test of every part but the fit (whose L-BFGS step compiles for
+#: ~30 s), on fewer methods, the default engines only, and the gradient on arrays only (the
+#: scalar engine's gradient compiles for ~20 s).
+QUICK_METHODS = ("lgvi", "hamel", "lgvi@4")
+QUICK_ENGINES = ("auto",)
+QUICK_PARTS = ("throughput", "gradient")
+GRAD_METHODS = ("lgvi", "hamel")
+GRAD_ENGINES = ("array", "scalar")
 DT = 5e-3
+PERTURB, SEED = 0.01, 0
+#: Stop repeating a timed run once its runs took this long in all (seconds).
+TIME_BUDGET_S = 20.0
+#: The fit: the inertia about the mass centre of the synthetic truth (the paper's is
+#: 0.04 I, the fit's start), observations every 0.05 s over 5 s (1 s with --quick).
+FIT_J_C_TRUE = ((0.03, 0.0, 0.0), (0.0, 0.05, 0.0), (0.0, 0.0, 0.04))
+FIT_OBS_EVERY, FIT_T_FINAL, FIT_T_FINAL_QUICK = 0.05, 5.0, 1.0
+
+#: What both sides compute (bench.md).
+WORK = ("Both sides compute, after every step, what `lgvi-jax sweep` records per "
+        "trajectory: the relative energy error |H - H0|/|H0| (running max and final), the "
+        "drift of every momentum map (the car-pendulum's cart momentum and vertical angular "
+        "momentum; the heavy top's vertical angular momentum), the orthogonality error "
+        "‖RᵀR - I‖_F (running max) and the Newton iterations (mean and max per step). JAX: "
+        "the sweep's batched rollout (`lgvi_jax.sweep.batch_arguments(..., "
+        "kind=\"metrics\")`; one trajectory is a sweep of one, on one device) with the "
+        "method `lgvi-jax sweep --engine ENGINE` builds. Numba: the same discrete "
+        "equations reduced by hand to three unknowns, with the same diagnostics written in "
+        "Numba (`experiments/numba_lgvi.py` `sweep_metrics`; car-pendulum only: n/a for "
+        "the heavy top); one trajectory on one core, the batch on all cores.")
 
 
 def _rss_mb() -> float:
@@ -60,70 +110,208 @@ def _rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def _best_time(fn: Callable[[], object], repeats: int) -> float:
-    best = float("inf")
-    for _ in range(repeats):
+def _timed(fn: Callable[[], object], repeats: int, budget_s: float = TIME_BUDGET_S):
+    """``(best seconds, runs, first result)``: up to ``repeats`` runs of ``fn``, fewer once
+    they took ``budget_s`` in all (at least one)."""
+    times, first = [], None
+    while len(times) < repeats:
         start = time.perf_counter()
-        jax.block_until_ready(fn())
-        best = min(best, time.perf_counter() - start)
-    return best
+        out = jax.block_until_ready(fn())
+        times.append(time.perf_counter() - start)
+        if first is None:
+            first = out
+        if sum(times) >= budget_s:
+            break
+    return min(times), len(times), first
 
 
-def _bench_jax(name: str, model, s0, steps: int, batch: int, repeats: int,
-               chord: str = "exact") -> dict:
-    if chord == "fused":
-        method = lj.FusedCarPendulum(name)
-    else:
-        method = dataclasses.replace(lj.RIGID_METHODS[name](), chord_matrix=chord)
-    out: dict = {}
-    # One trajectory: lj.final_state (no saved states, no batch axis), on one device.
-    params, static = eqx.partition((model, method), eqx.is_array)
+def _summary(res: dict, prefix: str) -> dict:
+    """Failures and the worst energy error of a batch's per-trajectory fields."""
+    ok = np.asarray(res["result"]) == 0
+    err = np.asarray(res["energy_error_max"])[ok]
+    its = np.asarray(res["newton_mean"])[ok]
+    return {f"{prefix}_failed": int(np.sum(~ok)),
+            f"{prefix}_energy_error_max": float(np.max(err)) if err.size else math.nan,
+            f"{prefix}_newton_mean": float(np.mean(its)) if its.size else math.nan}
 
-    def single(params, state, dt):
-        return lj.final_state(*eqx.combine(params, static), state, dt, steps)
 
-    start = time.perf_counter()
-    compiled = jax.jit(single).lower(params, s0, DT).compile()
-    out["compile_s"] = time.perf_counter() - start
-    _, code = compiled(params, s0, DT)
-    assert int(code) == 0, f"{name}: single run failed"
-    run_s = _best_time(lambda: compiled(params, s0, DT), repeats)
-    out["single_steps_per_s"] = steps / run_s
-    # The batch, sharded over all devices.
-    states = initial_conditions(model, s0, batch, 0.01, 0)
-    fn, args = batch_arguments(model, method, states, DT, steps, kind="final")
-    start = time.perf_counter()
-    compiled = fn.lower(*args).compile()
-    out["batch_compile_s"] = time.perf_counter() - start
-    dyn = args[:1] + args[2:]
-    res = compiled(*dyn)
-    out["batch_failed"] = int(np.sum(np.asarray(res["result"]) != 0))
-    run_s = _best_time(lambda: compiled(*dyn), repeats)
-    out["batch_steps_per_s"] = batch * steps / run_s
-    out["batch_wall_s"] = run_s
-    try:
-        mem = compiled.memory_analysis()
-        out["batch_xla_memory_mb"] = (mem.argument_size_in_bytes + mem.output_size_in_bytes
-                                      + mem.temp_size_in_bytes) / 2**20
-    except Exception:  # memory_analysis is not available on every backend
-        out["batch_xla_memory_mb"] = float("nan")
+def _bench_jax(model, method, s0, steps: int, batch: int, repeats: int) -> dict:
+    out: dict = {"engine": engine_name(method)}
+    for label, n, devices in (("single", 1, jax.devices()[:1]), ("batch", batch, None)):
+        states = initial_conditions(model, s0, n, PERTURB, SEED)
+        fn, args = batch_arguments(model, method, states, DT, steps, kind="metrics",
+                                   devices=devices)
+        start = time.perf_counter()
+        compiled = fn.lower(*args).compile()
+        out[f"{label}_compile_s"] = time.perf_counter() - start
+        dyn = args[:1] + args[2:]  # the static argument is baked into the compiled program
+        best, runs, res = _timed(lambda compiled=compiled, dyn=dyn: compiled(*dyn), repeats)
+        out[f"{label}_steps_per_s"] = n * steps / best
+        out[f"{label}_runs"] = runs
+        out.update(_summary(res, label))
+        if label == "batch":
+            out["batch_wall_s"] = best
+            try:
+                mem = compiled.memory_analysis()
+                out["batch_xla_memory_mb"] = (mem.argument_size_in_bytes
+                                              + mem.output_size_in_bytes
+                                              + mem.temp_size_in_bytes) / 2**20
+            except Exception:  # memory_analysis is not available on every backend
+                out["batch_xla_memory_mb"] = math.nan
+    out["compile_s"] = out["single_compile_s"]  # (the names of earlier bench.json files)
     return out
+
+
+def _numpy_states(states) -> list[np.ndarray]:
+    return [np.ascontiguousarray(np.asarray(x)) for x in (states.R, states.mu, states.q,
+                                                         states.p)]
 
 
 def _bench_numba(nb, name: str, model, s0, steps: int, batch: int, repeats: int) -> dict:
     params = nb.params_from_model(model)
-    R, mu, q, p = (np.asarray(x) for x in (s0.R, s0.mu, s0.q, s0.p))
     out: dict = {}
-    nb.rollout(name, R, mu, q, p, DT, 2, params)  # compiled by warmup(); keep it hot
-    run_s = _best_time(lambda: nb.rollout(name, R, mu, q, p, DT, steps, params), repeats)
-    out["single_steps_per_s"] = steps / run_s
-    states = initial_conditions(model, s0, batch, 0.01, 0)
-    Rb, mub, qb, pb = (np.ascontiguousarray(np.asarray(x))
-                       for x in (states.R, states.mu, states.q, states.p))
-    nb.rollout_batch(name, Rb[:2], mub[:2], qb[:2], pb[:2], DT, 2, params)
-    run_s = _best_time(
-        lambda: nb.rollout_batch(name, Rb, mub, qb, pb, DT, steps, params), repeats)
-    out["batch_steps_per_s"] = batch * steps / run_s
+    for label, n, threads in (("single", 1, 1), ("batch", batch, None)):
+        arrays = _numpy_states(initial_conditions(model, s0, n, PERTURB, SEED))
+        best, runs, (res, _) = _timed(
+            lambda arrays=arrays, threads=threads: nb.sweep_metrics(
+                name, *arrays, DT, steps, params, threads=threads), repeats)
+        out[f"{label}_steps_per_s"] = n * steps / best
+        out[f"{label}_runs"] = runs
+        out.update(_summary(res, label))
+    return out
+
+
+def _throughput(systems, methods, engines, steps, batch, repeats, nb, log) -> list[dict]:
+    rows: list[dict] = []
+    numba_rows: dict[str, dict] = {}
+    for system in systems:
+        scene = lj.scenes.get_scene(system)
+        model, s0 = scene.build()
+        seen = set()
+        for name in methods:
+            for engine in engines:
+                try:
+                    method = sweep_method(system, model, name, engine)
+                except ValueError as err:  # e.g. --engines fused on the heavy top
+                    log(f"  {system} {name} --engine {engine}: skipped ({err})")
+                    continue
+                used = engine_name(method)
+                if (name, used) in seen:
+                    continue
+                seen.add((name, used))
+                row = {"system": system, "method": name, "engine": used,
+                       "engine_option": engine,
+                       "jax": _bench_jax(model, method, s0, steps, batch, repeats),
+                       "numba": None}
+                base = name.partition("@")[0]
+                if nb is not None and system == "car-pendulum" and base in nb.METHODS:
+                    if name not in numba_rows:  # one baseline per method, for every engine
+                        numba_rows[name] = _bench_numba(nb, name, model, s0, steps, batch,
+                                                        repeats)
+                    row["numba"] = numba_rows[name]
+                    for k in ("single", "batch"):
+                        row[f"ratio_{k}"] = (row["jax"][f"{k}_steps_per_s"]
+                                             / row["numba"][f"{k}_steps_per_s"])
+                rows.append(row)
+                j, n = row["jax"], row["numba"]
+                msg = (f"  {system} {name} [{used}]: single {j['single_steps_per_s']:.3g} "
+                       f"steps/s, batch {j['batch_steps_per_s']:.3g} steps/s "
+                       f"({j['batch_failed']} failed), compile {j['single_compile_s']:.2f} + "
+                       f"{j['batch_compile_s']:.2f} s")
+                if n is not None:
+                    msg += (f"; numba single {n['single_steps_per_s']:.3g}, batch "
+                            f"{n['batch_steps_per_s']:.3g}; ratios {row['ratio_single']:.2f} "
+                            f"/ {row['ratio_batch']:.2f}")
+                log(msg)
+    return rows
+
+
+def _segment(n_steps: int) -> int:
+    """The checkpoint segment: the largest divisor of ``n_steps`` at most its square root
+    (memory ~ n/K + K)."""
+    return max(k for k in range(1, math.isqrt(n_steps) + 1) if n_steps % k == 0)
+
+
+def _gradient(methods, engines, steps: int, repeats: int, log) -> list[dict]:
+    from lgvi_jax.integrators import with_scalar_newton
+
+    model = lj.CarPendulum()
+    s0 = model.default_state()
+    K = _segment(steps)
+    rows = []
+    grads: dict[str, np.ndarray] = {}
+    for name in methods:
+        for engine in engines:
+            method = lj.RIGID_METHODS[name]()
+            if engine == "scalar":
+                method = with_scalar_newton(method)
+
+            def loss(J, method=method):
+                # A loss of the final state: how far the pendulum and the cart moved.
+                traj = lj.simulate(eqx.tree_at(lambda m: m.J, model, J), method, s0, DT,
+                                   steps, save_every=K, checkpoint_every=K)
+                R, q = traj.state.R[-1], traj.state.q[-1]
+                value = 0.5 * jnp.sum((R - s0.R) ** 2) + 0.5 * jnp.sum((q - s0.q) ** 2)
+                return value, traj.result
+
+            row: dict = {"method": name, "engine": engine, "steps": steps,
+                         "checkpoint_every": K}
+            for label, fn in (("forward", loss), ("gradient", jax.grad(loss, has_aux=True))):
+                start = time.perf_counter()
+                compiled = jax.jit(fn).lower(model.J).compile()
+                row[f"{label}_compile_s"] = time.perf_counter() - start
+                best, runs, (value, code) = _timed(lambda c=compiled: c(model.J), repeats)
+                row[f"{label}_s"] = best
+                row[f"{label}_runs"] = runs
+                row[f"{label}_failed"] = int(code) != 0
+                if label == "forward":
+                    row["loss"] = float(value)
+                else:
+                    g = np.asarray(value)
+                    grads[f"{name}/{engine}"] = g
+                    row["gradient_norm"] = float(np.linalg.norm(g))
+            row["gradient_over_forward"] = row["gradient_s"] / row["forward_s"]
+            ref = grads.get(f"{name}/{engines[0]}")
+            g = grads[f"{name}/{engine}"]
+            row["gradient_rel_diff"] = (float(np.max(np.abs(g - ref)) / np.max(np.abs(ref)))
+                                        if ref is not None else math.nan)
+            rows.append(row)
+            log(f"  grad {name} [{engine}], {steps} steps (checkpoint every {K}): forward "
+                f"{row['forward_s'] * 1e3:.1f} ms, gradient {row['gradient_s'] * 1e3:.1f} ms "
+                f"({row['gradient_over_forward']:.2f}x), compile {row['forward_compile_s']:.1f}"
+                f" + {row['gradient_compile_s']:.1f} s")
+    return rows
+
+
+def _fit(quick: bool, log) -> dict:
+    from lgvi_jax import identify
+    from lgvi_jax.inertia import centroidal_inertia, pivot_inertia
+    from lgvi_jax.models.rigid_bodies import PAPER_J, PAPER_RHO_C
+
+    J_c_true = np.asarray(FIT_J_C_TRUE)
+    true = lj.CarPendulum(J=np.asarray(pivot_inertia(J_c_true, 1.0, PAPER_RHO_C)))
+    t_final = FIT_T_FINAL_QUICK if quick else FIT_T_FINAL
+    times = FIT_OBS_EVERY * np.arange(round(t_final / FIT_OBS_EVERY) + 1)
+    data = identify.observe(true, times)  # the independent reference (SciPy DOP853)
+    obs = identify.check_observations(data, DT)
+    result = identify.fit(obs, DT, names=("J",))  # defaults: lgvi, L-BFGS, 300 iterations
+
+    def rel(a, b):
+        return float(np.linalg.norm(np.asarray(a) - b) / np.linalg.norm(b))
+
+    out = {"dt": DT, "t_final": t_final, "observations": len(times),
+           "method": result.method, "optimizer": result.optimizer,
+           "engine": engine_name(lj.RIGID_METHODS[result.method]()),
+           "wall_s": result.wall_time_s, "compile_s": result.compile_time_s,
+           "iterations": result.iterations, "stopped": result.stopped,
+           "start_rel_error_J_c": rel(centroidal_inertia(
+               np.asarray(PAPER_J), 1.0, np.asarray(PAPER_RHO_C)), J_c_true),
+           "rel_error_J_c": rel(result.J_c, J_c_true),
+           "rel_error_J": rel(result.model.J, np.asarray(true.J)),
+           "loss_initial": result.loss_initial, "loss_final": result.loss_final}
+    log(f"  fit J ({result.optimizer}, {result.method}, h = {DT:g}, {len(times)} "
+        f"observations over {t_final:g} s): relative error of J_c {out['rel_error_J_c']:.3%}, "
+        f"{result.iterations} iterations ({result.stopped}), {result.wall_time_s:.1f} s")
     return out
 
 
@@ -170,57 +358,67 @@ def _environment() -> dict:
             "device_kind": devices[0].device_kind}
 
 
+def _load_numba(methods: Sequence[str], log):
+    """The Numba baselines, compiled for ``methods`` (``None`` without Numba), and what
+    was used."""
+    try:
+        from lgvi_jax.experiments import numba_lgvi as nb
+    except ImportError as err:
+        log(f"Numba baseline unavailable ({err}); install the bench extra: "
+            "pip install 'lgvi_jax[bench]'")
+        return None, None
+    import numba
+
+    bases = {m.partition("@")[0] for m in methods} & set(nb.METHODS)
+    # One compiled loop for lgvi, one for every Hamel method.
+    kernels = tuple(k for k in ("lgvi", "hamel")
+                    if any((b == "lgvi") == (k == "lgvi") for b in bases))
+    start = time.perf_counter()
+    nb.warmup(kernels)
+    return nb, {"version": numba.__version__, "threads": numba.get_num_threads(),
+                "compile_s": time.perf_counter() - start}
+
+
 def run(out_dir: Path | str, quick: bool = False, log: Callable = print, *,
         steps: int | None = None, batch: int | None = None,
-        methods: tuple[str, ...] = METHODS, long_run: bool = True) -> dict:
+        methods: Sequence[str] | None = None, systems: Sequence[str] = SYSTEMS,
+        engines: Sequence[str] | None = None, parts: Sequence[str] | None = None,
+        long_run: bool = True) -> dict:
+    """Run the benchmark into ``out_dir`` (``bench.json``, ``bench.md``); returns the
+    results. ``quick``: small sizes (1000 steps, batch 64, 2 repeats) and, unless given,
+    :data:`QUICK_METHODS`, :data:`QUICK_ENGINES`, :data:`QUICK_PARTS` (module
+    docstring)."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     steps = steps or (1000 if quick else 10_000)
     batch = batch or (64 if quick else 1024)
     repeats = 2 if quick else 3
-    model = lj.CarPendulum()
-    s0 = model.default_state()
-    try:
-        from lgvi_jax.experiments import numba_lgvi as nb
-
-        start = time.perf_counter()
-        nb.warmup()
-        numba_compile_s = time.perf_counter() - start
-        import numba
-
-        numba_info = {"version": numba.__version__, "threads": numba.get_num_threads(),
-                      "compile_s": numba_compile_s}
-    except ImportError as err:
-        log(f"Numba baseline unavailable ({err}); install the bench extra: "
-            "pip install 'lgvi_jax[bench]'")
-        nb = None
-        numba_info = None
+    methods = tuple(methods or (QUICK_METHODS if quick else METHODS))
+    engines = tuple(engines or (QUICK_ENGINES if quick else ENGINES))
+    parts = tuple(parts or (QUICK_PARTS if quick else PARTS))
+    systems = tuple(systems)
     env = _environment()
-    log(f"car-pendulum, h = {DT}, {steps} steps, batch {batch}, on {len(env['devices'])} "
-        f"{env['platform']} device(s)")
-    rows, numba_rows = {}, {}
-    for base, chord in ((n, c) for n in methods for c in CHORDS):
-        row = {"jax": _bench_jax(base, model, s0, steps, batch, repeats, chord),
-               "method": base, "chord_matrix": chord}
-        name = {"exact": base, "mass": f"{base}, mass chord", "fused": f"{base}, fused"}[chord]
-        if nb is not None and base in nb.METHODS:
-            if base not in numba_rows:  # one baseline per method, for both chord rows
-                numba_rows[base] = _bench_numba(nb, base, model, s0, steps, batch, repeats)
-            row["numba"] = numba_rows[base]
-            for k in ("single_steps_per_s", "batch_steps_per_s"):
-                row[f"ratio_{k.split('_')[0]}"] = row["jax"][k] / row["numba"][k]
-        rows[name] = row
-        j = row["jax"]
-        msg = (f"  {name}: single {j['single_steps_per_s']:.3g} steps/s, batch "
-               f"{j['batch_steps_per_s']:.3g} steps/s, compile {j['compile_s']:.2f} s")
-        if "numba" in row:
-            msg += (f"; numba single {row['numba']['single_steps_per_s']:.3g}, batch "
-                    f"{row['numba']['batch_steps_per_s']:.3g}; ratios "
-                    f"{row['ratio_single']:.2f} / {row['ratio_batch']:.2f}")
-        log(msg)
-    results = {"quick": quick, "dt": DT, "steps": steps, "batch": batch, "repeats": repeats,
-               "methods": rows, "numba": numba_info, "environment": env,
-               "process_peak_rss_mb": _rss_mb()}
+    results: dict = {"quick": quick, "dt": DT, "steps": steps, "batch": batch,
+                     "perturb": PERTURB, "seed": SEED, "repeats": repeats,
+                     "time_budget_s": TIME_BUDGET_S, "systems": list(systems),
+                     "methods": list(methods), "engines": list(engines),
+                     "parts": list(parts), "numba": None, "environment": env}
+    if "throughput" in parts:
+        uses_numba = "car-pendulum" in systems
+        nb, results["numba"] = _load_numba(methods, log) if uses_numba else (None, None)
+        log(f"throughput: h = {DT}, {steps} steps, batch {batch}, metrics every step, on "
+            f"{len(env['devices'])} {env['platform']} device(s)")
+        results["throughput"] = _throughput(systems, methods, engines, steps, batch, repeats,
+                                            nb, log)
+    if "gradient" in parts:
+        grad_methods = tuple(m for m in GRAD_METHODS if m in methods) or GRAD_METHODS[:1]
+        grad_engines = GRAD_ENGINES[:1] if quick else GRAD_ENGINES
+        log(f"gradient: jax.grad through {steps} steps of one car-pendulum trajectory")
+        results["gradient"] = _gradient(grad_methods, grad_engines, steps, repeats, log)
+    if "fit" in parts:
+        log("fit: the inertia from noise-free synthetic observations")
+        results["fit"] = _fit(quick, log)
+    results["process_peak_rss_mb"] = _rss_mb()
     if long_run:
         results["long_run"] = [_long_run_memory(n, log)
                                for n in ((10_000, 100_000) if quick else (100_000, 1_000_000))]
@@ -230,44 +428,111 @@ def run(out_dir: Path | str, quick: bool = False, log: Callable = print, *,
     return results
 
 
+def _g(x, spec: str = ".3g") -> str:
+    """``x`` formatted by ``spec``, ``n/a`` when missing or not finite."""
+    return format(x, spec) if x is not None and math.isfinite(x) else "n/a"
+
+
 def _markdown(r: dict) -> str:
     env = r["environment"]
+    numba = r.get("numba")
     lines = [
-        f"# Throughput: car-pendulum, h = {r['dt']}, {r['steps']} steps",
+        f"# Benchmark: h = {r['dt']}, {r['steps']} steps",
         "",
         f"{len(env['devices'])} {env['platform']} device(s) ({env['device_kind']}), "
         f"{env['cpu_count']} CPU cores, jax {env['jax']}"
-        + (f", Numba {r['numba']['version']} with {r['numba']['threads']} threads"
-           if r["numba"] else ", no Numba baseline") + ". Best of "
-        f"{r['repeats']} runs after compilation.",
-        "",
-        "Rows marked *mass chord* use `chord_matrix=\"mass\"` (the continuous Legendre "
-        "matrix as the chord matrix, updated by Broyden's formula: more, cheaper "
-        "iterations, the same solutions). Rows marked *fused* are "
-        "`lgvi_jax.FusedCarPendulum`, the same discrete equations reduced to three "
-        "unknowns in scalar form (what `lgvi-jax sweep` uses for the car-pendulum by "
-        "default).",
-        "",
-        "| method | JAX 1 traj (steps/s) | Numba 1 traj | ratio | JAX batch of "
-        f"{r['batch']} (steps/s) | Numba batch (all cores) | ratio | compile (s) 1 traj, "
-        "batch | batch program memory (MB) |",
-        "|---|---|---|---|---|---|---|---|---|",
+        + (f", Numba {numba['version']} with {numba['threads']} threads" if numba
+           else ", no Numba baseline") + ". Best of up to "
+        f"{r['repeats']} runs after compilation (fewer once a row's runs took "
+        f"{r.get('time_budget_s', TIME_BUDGET_S):g} s); compile times cold (ahead of time, "
+        "no persistent cache).",
     ]
-    for name, row in r["methods"].items():
-        j, n = row["jax"], row.get("numba")
+    if "throughput" in r:
+        lines += [
+            "",
+            f"## Throughput of the sweep's work (metrics every step; one trajectory, and a "
+            f"batch of {r['batch']})",
+            "",
+            WORK + " Engines: *fused* (`lj.FusedCarPendulum`, the car-pendulum's default), "
+            "*scalar* (the autodiff engine solving on scalars, the default elsewhere), "
+            "*general* (the autodiff engine on arrays). Ratio = JAX / Numba steps per "
+            "second.",
+            "",
+            "| system | method | engine | JAX 1 traj (steps/s) | Numba 1 traj | ratio | "
+            f"JAX batch of {r['batch']} (steps/s) | Numba batch (all cores) | ratio | "
+            "failed (JAX, Numba) | max energy error (JAX, Numba) | compile (s) 1 traj, "
+            "batch | batch program memory (MB) |",
+            "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        ]
+        for row in r["throughput"]:
+            j, n = row["jax"], row.get("numba")
 
-        def cell(d, key):
-            return f"{d[key]:.3g}" if d else "n/a"
+            def nb_cell(key, n=n):
+                return _g(n[key]) if n else "n/a"
 
-        lines.append(
-            f"| {name} | {j['single_steps_per_s']:.3g} | {cell(n, 'single_steps_per_s')} | "
-            f"{row.get('ratio_single', float('nan')):.2f} | {j['batch_steps_per_s']:.3g} | "
-            f"{cell(n, 'batch_steps_per_s')} | {row.get('ratio_batch', float('nan')):.2f} | "
-            f"{j['compile_s']:.2f}, {j['batch_compile_s']:.2f} | "
-            f"{j['batch_xla_memory_mb']:.1f} |")
+            failed = f"{j['batch_failed'] + j['single_failed']}, " + (
+                f"{n['batch_failed'] + n['single_failed']}" if n else "n/a")
+            energy = f"{_g(j['batch_energy_error_max'], '.2e')}, " + (
+                _g(n["batch_energy_error_max"], ".2e") if n else "n/a")
+            lines.append(
+                f"| {row['system']} | {row['method']} | {row['engine']} | "
+                f"{_g(j['single_steps_per_s'])} | {nb_cell('single_steps_per_s')} | "
+                f"{_g(row.get('ratio_single'), '.2f')} | {_g(j['batch_steps_per_s'])} | "
+                f"{nb_cell('batch_steps_per_s')} | {_g(row.get('ratio_batch'), '.2f')} | "
+                f"{failed} | "
+                f"{energy} | {j['single_compile_s']:.2f}, {j['batch_compile_s']:.2f} | "
+                f"{j['batch_xla_memory_mb']:.2f} |")
+    if "gradient" in r:
+        rows = r["gradient"]
+        lines += [
+            "",
+            f"## Gradient through {rows[0]['steps'] if rows else r['steps']} steps",
+            "",
+            "`jax.grad` of a loss of the final state (½‖R_N − R_0‖² + ½|q_N − q_0|²) with "
+            "respect to the inertia J, one car-pendulum trajectory from the paper's state, "
+            "through the library's rollout with checkpoints (`simulate(..., "
+            "checkpoint_every=K)`; implicit-function-theorem derivatives of every Newton "
+            "solve), against the same rollout forward. Engines: *array* (the autodiff "
+            "engine, the library's default) and *scalar* (`with_scalar_newton`). The fused "
+            "steps have no derivatives.",
+            "",
+            "| method | engine | K | forward (ms) | gradient (ms) | gradient / forward | "
+            "compile (s) forward, gradient | gradient vs first engine (rel.) |",
+            "|---|---|---|---|---|---|---|---|",
+        ]
+        for row in rows:
+            lines.append(
+                f"| {row['method']} | {row['engine']} | {row['checkpoint_every']} | "
+                f"{row['forward_s'] * 1e3:.3g} | {row['gradient_s'] * 1e3:.3g} | "
+                f"{row['gradient_over_forward']:.2f} | {row['forward_compile_s']:.1f}, "
+                f"{row['gradient_compile_s']:.1f} | "
+                + (f"{row['gradient_rel_diff']:.1e}" if math.isfinite(
+                    row["gradient_rel_diff"]) and row["engine"] != GRAD_ENGINES[0] else "–")
+                + " |")
+    if "fit" in r:
+        f = r["fit"]
+        lines += [
+            "",
+            "## Fit: the inertia recovered from a trajectory",
+            "",
+            f"`lgvi_jax.identify.fit(obs, {f['dt']:g}, names=(\"J\",))` with its defaults "
+            f"(`{f['method']}` on the {f['engine']} autodiff engine, {f['optimizer']}, "
+            "horizon continuation): noise-free observations of R and q every "
+            f"{FIT_OBS_EVERY:g} s over {f['t_final']:g} s from the independent reference "
+            "(DOP853 at 1e-13) for J_c = diag(0.03, 0.05, 0.04) about the mass centre, "
+            f"from the paper's J ({f['start_rel_error_J_c']:.0%} off). The error left is the "
+            "integrator's O(h²) bias, absorbed into the inertia.",
+            "",
+            "| wall time (s) | of which the first iteration (compile) | iterations | stopped "
+            "| relative error of J_c | relative error of J (pivot) |",
+            "|---|---|---|---|---|---|",
+            f"| {f['wall_s']:.1f} | {f['compile_s']:.1f} | {f['iterations']} | {f['stopped']} "
+            f"| {f['rel_error_J_c']:.3%} | {f['rel_error_J']:.3%} |",
+        ]
     if r.get("long_run"):
-        lines += ["", "Long runs (`lgvi-jax simulate car-pendulum --method lgvi --save-every "
-                  "1000`, child process):", "",
+        lines += ["", "## Memory of long runs", "",
+                  "`lgvi-jax simulate car-pendulum --method lgvi --save-every 1000`, child "
+                  "process:", "",
                   "| steps | saved states | peak RSS (MB) | steps/s |", "|---|---|---|---|"]
         for lr in r["long_run"]:
             lines.append(f"| {lr['n_steps']} | {lr['saved_states']} | {lr['peak_rss_mb']:.0f} "

@@ -76,6 +76,11 @@ serves all three methods (the method is a run-time code) and both entry points
 runs one contiguous chunk per thread (``numba.get_num_threads()``) with the GIL released,
 which avoids a second, ``parallel=True`` compilation. Checked against the JAX engine in
 ``tests/test_numba_baseline.py``.
+
+The same loop runs compositions (a step of sub-steps ``γ_i h``) and, on request, the
+sweep's per-step diagnostics (:func:`energy`, :func:`angular_momentum_z`,
+:func:`orthogonality_error`, reduced by :func:`metrics_start`/:func:`metrics_update`); both
+are run-time arguments, so they cost no second compilation (see :mod:`numba_lgvi`).
 """
 
 from __future__ import annotations
@@ -180,6 +185,146 @@ def _eval(w0, w1, w2, R0, K0, K1, K2, px, py, h, prm, method):
     return res0, res1, res2, u0, u1, n0, n1, n2, c1, c2
 
 
+# ---------------------------------------------------------------------------------------
+# Per-step diagnostics: what ``lgvi-jax sweep`` records (lgvi_jax.sweep._sweep_one)
+# ---------------------------------------------------------------------------------------
+
+#: The per-trajectory fields of :func:`metrics_of_states` and of the rollouts with
+#: ``metrics=True``, in this order: the sweep's names (``lgvi_jax.sweep``) for the
+#: car-pendulum's invariants (energy, cart momentum ``p``, vertical angular momentum).
+METRICS = ("energy_error_max", "energy_error_final", "momentum_drift_max",
+           "angular_momentum_z_drift_max", "orthogonality_error_max")
+
+# Slots of the running-metrics accumulator (one float64 vector per trajectory).
+_H0, _SCALE, _LZ0, _PX0, _PY0, _EMAX, _EFINAL, _PMAX, _LZMAX, _OMAX = range(10)
+_ACC = 10
+
+
+@njit(cache=False, error_model="numpy")
+def energy(R, mu, q, p, prm, A, X):
+    """``H = ½(μ·ω + p·v) − m g e3ᵀRρ_c`` of :class:`lgvi_jax.CarPendulum` (``energy``: the
+    kinetic energy is quadratic in the velocities), with its closed-form inverse Legendre
+    map (``velocities``): the 3x3 Schur complement ``J − m²/(m+M) (|ρ|²I − ρρᵀ − ccᵀ)``,
+    ``c = ρ × Rᵀe3``, solved by the same pivot-free Gauss–Jordan elimination
+    (:func:`lgvi_jax.newton.spd_solve`), then ``v = (p − m P R(ω × ρ))/(m+M)``. The same
+    operations in the same order as the JAX model, so the two differ by rounding only (XLA
+    may contract a product and a sum into one fused multiply-add). ``A`` (3, 3) and ``X``
+    (3,) are scratch space."""
+    m, M, g = prm[0], prm[1], prm[2]
+    rho0, rho1, rho2 = prm[3], prm[4], prm[5]
+    total = m + M
+    r30, r31, r32 = R[2, 0], R[2, 1], R[2, 2]
+    c0 = rho1 * r32 - rho2 * r31  # c = ρ × Rᵀe3
+    c1 = rho2 * r30 - rho0 * r32
+    c2 = rho0 * r31 - rho1 * r30
+    rr = rho0 * rho0 + rho1 * rho1 + rho2 * rho2
+    k = m * m / total
+    cc = (c0, c1, c2)
+    for i in range(3):
+        for j in range(3):
+            A[i, j] = prm[6 + 3 * i + j] - k * (
+                (rr if i == j else 0.0) - prm[3 + i] * prm[3 + j] - cc[i] * cc[j])
+    a0 = R[0, 0] * p[0] + R[1, 0] * p[1]  # RᵀPᵀp
+    a1 = R[0, 1] * p[0] + R[1, 1] * p[1]
+    a2 = R[0, 2] * p[0] + R[1, 2] * p[1]
+    f = m / total
+    X[0] = mu[0] - f * (rho1 * a2 - rho2 * a1)
+    X[1] = mu[1] - f * (rho2 * a0 - rho0 * a2)
+    X[2] = mu[2] - f * (rho0 * a1 - rho1 * a0)
+    # Gauss–Jordan without pivoting (lgvi_jax.newton._gauss_jordan): for each k, subtract
+    # (A[:, k] − e_k) times row k over the pivot.
+    for kk in range(3):
+        inv = 1.0 / A[kk, kk]
+        r0, r1, r2 = A[kk, 0] * inv, A[kk, 1] * inv, A[kk, 2] * inv
+        xk = X[kk] * inv
+        for i in range(3):
+            col = A[i, kk] - (1.0 if i == kk else 0.0)
+            A[i, 0] -= col * r0
+            A[i, 1] -= col * r1
+            A[i, 2] -= col * r2
+            X[i] -= col * xk
+    w0, w1, w2 = X[0], X[1], X[2]
+    e0 = w1 * rho2 - w2 * rho1  # e = ω × ρ
+    e1 = w2 * rho0 - w0 * rho2
+    e2 = w0 * rho1 - w1 * rho0
+    v0 = (p[0] - m * (R[0, 0] * e0 + R[0, 1] * e1 + R[0, 2] * e2)) / total
+    v1 = (p[1] - m * (R[1, 0] * e0 + R[1, 1] * e1 + R[1, 2] * e2)) / total
+    return 0.5 * (mu[0] * w0 + mu[1] * w1 + mu[2] * w2 + p[0] * v0 + p[1] * v1) - m * g * (
+        r30 * rho0 + r31 * rho1 + r32 * rho2)
+
+
+@njit(cache=False, error_model="numpy")
+def angular_momentum_z(R, mu, q, p):
+    """``e3·(Rμ) + x p_y − y p_x`` (``CarPendulum.invariants``)."""
+    return R[2, 0] * mu[0] + R[2, 1] * mu[1] + R[2, 2] * mu[2] + q[0] * p[1] - q[1] * p[0]
+
+
+@njit(cache=False, error_model="numpy")
+def orthogonality_error(R):
+    """``‖RᵀR − I‖_F`` (:func:`lgvi_jax.so3.orthogonality_error`)."""
+    sq = 0.0
+    for i in range(3):
+        for j in range(3):
+            e = R[0, i] * R[0, j] + R[1, i] * R[1, j] + R[2, i] * R[2, j] - (
+                1.0 if i == j else 0.0)
+            sq += e * e
+    return np.sqrt(sq)
+
+
+@njit(cache=False, error_model="numpy")
+def _fmax(a, b):
+    """``numpy.fmax``: the larger, ignoring a NaN (as the sweep's running maxima)."""
+    if a != a or b > a:
+        return b
+    return a
+
+
+@njit(cache=False, error_model="numpy")
+def metrics_start(acc, R, mu, q, p, prm, A, X):
+    """Initialise the accumulator ``acc`` (:data:`_ACC` slots) at the initial state: the
+    invariants' initial values, and maxima at NaN (a trajectory that fails at its first
+    step records NaN, not 0, as in the sweep)."""
+    h0 = energy(R, mu, q, p, prm, A, X)
+    acc[_H0] = h0
+    acc[_SCALE] = abs(h0) if h0 != 0.0 else 1.0
+    acc[_LZ0] = angular_momentum_z(R, mu, q, p)
+    acc[_PX0], acc[_PY0] = p[0], p[1]
+    for i in (_EMAX, _EFINAL, _PMAX, _LZMAX, _OMAX):
+        acc[i] = np.nan
+
+
+@njit(cache=False, error_model="numpy")
+def metrics_update(acc, R, mu, q, p, prm, A, X):
+    """After a successful step: the sweep's per-step measures and running maxima."""
+    err = abs(energy(R, mu, q, p, prm, A, X) - acc[_H0]) / acc[_SCALE]
+    acc[_EMAX] = _fmax(acc[_EMAX], err)
+    acc[_EFINAL] = err
+    acc[_PMAX] = _fmax(acc[_PMAX], max(abs(p[0] - acc[_PX0]), abs(p[1] - acc[_PY0])))
+    acc[_LZMAX] = _fmax(acc[_LZMAX], abs(angular_momentum_z(R, mu, q, p) - acc[_LZ0]))
+    acc[_OMAX] = _fmax(acc[_OMAX], orthogonality_error(R))
+
+
+@njit(cache=False, error_model="numpy")
+def _metrics_of_states(R, mu, q, p, prm, out):
+    A, X = np.empty((3, 3)), np.empty(3)
+    acc = np.empty(_ACC)
+    metrics_start(acc, R[0], mu[0], q[0], p[0], prm, A, X)
+    for k in range(1, R.shape[0]):
+        metrics_update(acc, R[k], mu[k], q[k], p[k], prm, A, X)
+    out[0], out[1], out[2], out[3], out[4] = (acc[_EMAX], acc[_EFINAL], acc[_PMAX],
+                                              acc[_LZMAX], acc[_OMAX])
+
+
+def metrics_of_states(R, mu, q, p, params) -> dict[str, float]:
+    """The sweep's metrics (:data:`METRICS`) of a given sequence of car-pendulum states
+    (leading axis: the initial state, then one per step), computed by the compiled
+    diagnostics of the rollouts (for checking them on states of another integrator)."""
+    out = np.empty(len(METRICS))
+    arrays = [np.ascontiguousarray(np.asarray(x, np.float64)) for x in (R, mu, q, p)]
+    _metrics_of_states(*arrays, np.asarray(params, np.float64), out)
+    return dict(zip(METRICS, (float(x) for x in out), strict=True))
+
+
 def solver_kernels(evaluate):
     """The compiled step and rollout loop for the residual ``evaluate`` (the signature and
     return values of :func:`_eval`: ``(res (3), u (2), μ_{k+1} without gravity (3), c_1,
@@ -228,6 +373,7 @@ def solver_kernels(evaluate):
         m, g = prm[0], prm[2]
         r0, r1, r2 = prm[3], prm[4], prm[5]
         hg = 0.5 * h * m * g
+        ah = abs(h)  # a composition's sub-steps can be negative
         # K = μ_0 + (h/2) m g ρ × b_k,  b_k = R0ᵀ e3 (third row of R0)
         bx, by, bz = R0[2, 0], R0[2, 1], R0[2, 2]
         K0 = mu0[0] + hg * (r1 * bz - r2 * by)
@@ -256,8 +402,8 @@ def solver_kernels(evaluate):
             if not (np.isfinite(d0) and np.isfinite(d1) and np.isfinite(d2)):
                 code = 2
                 break
-            size = max(abs(d0) / (h + abs(w0)), abs(d1) / (h + abs(w1)),
-                       abs(d2) / (h + abs(w2))) * 1e12
+            size = max(abs(d0) / (ah + abs(w0)), abs(d1) / (ah + abs(w1)),
+                       abs(d2) / (ah + abs(w2))) * 1e12
             if size <= 1.0:
                 code = 0
                 break
@@ -294,20 +440,34 @@ def solver_kernels(evaluate):
         return its, code
 
     @njit(cache=False, nogil=True, error_model="numpy")
-    def rollout_range(R, mu, q, p, h, n_steps, prm, method, chord_steps, lo, hi, its,
-                      codes):
+    def rollout_range(R, mu, q, p, h, n_steps, prm, method, chord_steps, gammas, metrics,
+                      lo, hi, its, codes, failed, its_max, out):
         """Trajectories ``lo:hi`` of a batch, in place (``R, mu, q, p`` hold the initial
-        states and receive the final ones). Releases the GIL: the batch runs in threads."""
+        states and receive the final ones). Releases the GIL: the batch runs in threads.
+
+        A step is the sub-steps ``γ_1 h, ..., γ_s h`` (``gammas``; ``(1,)`` for the method
+        itself, the composition's fractions for ``METHOD@ORDER``), each warm-started from
+        the previous sub-step's ``w`` scaled by ``γ_i/γ_{i-1}``. Per trajectory: Newton
+        iterations in all (``its``), the most in one step (``its_max``), the result code,
+        the index of the failed step (-1 if none) and, with ``metrics``, the sweep's metrics
+        (:data:`METRICS`, one row of ``out``) measured after every step."""
         R0, mu0, q0, p0 = np.empty((3, 3)), np.empty(3), np.empty(2), np.empty(2)
         R1, mu1, q1, p1 = np.empty((3, 3)), np.empty(3), np.empty(2), np.empty(2)
         w = np.empty(3)
         Ji = np.empty(9)
+        A, X = np.empty((3, 3)), np.empty(3)
+        acc = np.empty(_ACC)
         J = prm[6:15]
-        # First guess w = h J⁻¹ μ (cofactors); then each step warm-starts from the previous w.
+        n_sub = gammas.shape[0]
+        ratio = np.empty(n_sub)
+        for i in range(n_sub):
+            ratio[i] = gammas[i] / gammas[i - 1]  # i = 0: over the last (a step's wrap)
+        # First guess w = γ_s h J⁻¹ μ (cofactors; the first sub-step scales it by γ_1/γ_s);
+        # then each sub-step warm-starts from the previous one's w.
         k0 = J[4] * J[8] - J[5] * J[7]
         k1 = J[5] * J[6] - J[3] * J[8]
         k2 = J[3] * J[7] - J[4] * J[6]
-        s = h / (J[0] * k0 + J[1] * k1 + J[2] * k2)
+        s = h * gammas[n_sub - 1] / (J[0] * k0 + J[1] * k1 + J[2] * k2)
         for b in range(lo, hi):
             for i in range(3):
                 for j in range(3):
@@ -322,21 +482,36 @@ def solver_kernels(evaluate):
                         + (J[2] * J[3] - J[0] * J[5]) * mu0[2])
             w[2] = s * (k2 * mu0[0] + (J[1] * J[6] - J[0] * J[7]) * mu0[1]
                         + (J[0] * J[4] - J[1] * J[3]) * mu0[2])
+            if metrics:
+                metrics_start(acc, R0, mu0, q0, p0, prm, A, X)
             total = 0
+            most = 0
             code = 0
-            for _ in range(n_steps):
-                n_its, c = step(R0, mu0, q0, p0, w, h, prm, method, chord_steps, Ji, R1, mu1,
-                                 q1, p1)
+            fail = -1
+            for k in range(n_steps):
+                n_its = 0
+                for i in range(n_sub):
+                    for j in range(3):
+                        w[j] *= ratio[i]
+                    sub_its, c = step(R0, mu0, q0, p0, w, h * gammas[i], prm, method,
+                                      chord_steps, Ji, R1, mu1, q1, p1)
+                    n_its += sub_its
+                    if c != 0:
+                        code = c
+                        break
+                    R0, R1 = R1, R0
+                    mu0, mu1 = mu1, mu0
+                    q0, q1 = q1, q0
+                    p0, p1 = p1, p0
                 total += n_its
-                if c != 0:
-                    code = c
+                most = max(most, n_its)
+                if code != 0:
+                    fail = k
                     for i in range(3):
                         mu0[i] = np.nan
                     break
-                R0, R1 = R1, R0
-                mu0, mu1 = mu1, mu0
-                q0, q1 = q1, q0
-                p0, p1 = p1, p0
+                if metrics:
+                    metrics_update(acc, R0, mu0, q0, p0, prm, A, X)
             for i in range(3):
                 for j in range(3):
                     R[b, i, j] = R0[i, j]
@@ -345,7 +520,15 @@ def solver_kernels(evaluate):
                 q[b, i] = q0[i]
                 p[b, i] = p0[i]
             its[b] = total
+            its_max[b] = most
             codes[b] = code
+            failed[b] = fail
+            if metrics:
+                out[b, 0] = acc[_EMAX]
+                out[b, 1] = acc[_EFINAL] if code == 0 else np.nan
+                out[b, 2] = acc[_PMAX]
+                out[b, 3] = acc[_LZMAX]
+                out[b, 4] = acc[_OMAX]
 
     return inverse_jacobian, step, rollout_range
 
@@ -366,28 +549,42 @@ def _prepare(R, mu, q, p, batch):
 
 
 def run_kernel(rollout_range, method, R, mu, q, p, h, n_steps, params, chord_steps,
-               batch):
+               batch, *, gammas=(1.0,), metrics=False, threads=None):
     """Run a ``rollout_range`` of :func:`solver_kernels` with the integer ``method``: one
-    trajectory (``batch=False``) or a batch (leading axis) in parallel over
-    ``numba.get_num_threads()`` threads (the compiled loop releases the GIL; one contiguous
-    chunk per thread). Returns ``(R, mu, q, p, iterations, codes)``, the last two of shape
-    ``(B,)`` (``(1,)`` for one trajectory, with a leading axis on the states)."""
+    trajectory (``batch=False``) or a batch (leading axis) in parallel over ``threads``
+    threads (default ``numba.get_num_threads()``; the compiled loop releases the GIL; one
+    contiguous chunk per thread). ``gammas``: the sub-steps of a composition (default: the
+    method itself). Returns ``(R, mu, q, p, iterations, codes)``, the last two of shape
+    ``(B,)`` (``(1,)`` for one trajectory, with a leading axis on the states); with
+    ``metrics=True`` also a dict of the sweep's per-trajectory fields (arrays ``(B,)``:
+    :data:`METRICS`, ``newton_mean``, ``newton_max``, ``result``, ``failed_step``),
+    measured after every step."""
     (R, mu, q, p), its, codes = _prepare(R, mu, q, p, batch)
     B = R.shape[0]
-    n_threads = max(1, min(numba.get_num_threads(), B))
+    failed = np.full(B, -1, np.int64)
+    its_max = np.zeros(B, np.int64)
+    out = np.full((B, len(METRICS)), np.nan)
+    n_threads = max(1, min(threads or numba.get_num_threads(), B))
     bounds = [B * i // n_threads for i in range(n_threads + 1)]
     args = (float(h), int(n_steps), np.asarray(params, np.float64), int(method),
-            int(chord_steps))
+            int(chord_steps), np.asarray(gammas, np.float64), bool(metrics))
 
     def run(i):
-        rollout_range(R, mu, q, p, *args, bounds[i], bounds[i + 1], its, codes)
+        rollout_range(R, mu, q, p, *args, bounds[i], bounds[i + 1], its, codes, failed,
+                      its_max, out)
 
     if n_threads == 1:
         run(0)
     else:
         with ThreadPoolExecutor(n_threads) as pool:
             list(pool.map(run, range(n_threads)))
-    return R, mu, q, p, its, codes
+    if not metrics:
+        return R, mu, q, p, its, codes
+    fields = {name: out[:, i] for i, name in enumerate(METRICS)}
+    done = np.where(failed >= 0, failed + 1, int(n_steps))
+    fields.update(newton_mean=its / np.maximum(done, 1), newton_max=its_max,
+                  result=codes.copy(), failed_step=failed)
+    return R, mu, q, p, its, codes, fields
 
 
 def rollout(method, R, mu, q, p, h, n_steps, params, chord_steps=CHORD_STEPS):
@@ -405,5 +602,6 @@ def rollout_batch(method, R, mu, q, p, h, n_steps, params, chord_steps=CHORD_STE
                       chord_steps, True)
 
 
-__all__ = ["CHORD_STEPS", "CODES", "METHODS", "rollout", "rollout_batch", "run_kernel",
-           "solver_kernels"]
+__all__ = ["CHORD_STEPS", "CODES", "METHODS", "METRICS", "angular_momentum_z", "energy",
+           "metrics_of_states", "metrics_start", "metrics_update", "orthogonality_error",
+           "rollout", "rollout_batch", "run_kernel", "solver_kernels"]

@@ -38,6 +38,21 @@ contiguous chunk per thread with the GIL released.
 The Hamel methods (``hamel``, ``hamel-cayley``, ``hamel-exact``) are in
 :mod:`numba_hamel` (their own derivation), dispatched by ``rollout``/``rollout_batch``
 below with the same parameters and return values.
+
+**Compositions** (``lgvi@4``, ``hamel-cayley@6``, ...): the sub-steps ``γ_i h`` of
+:func:`lgvi_jax.integrators.resolve_method` in the same compiled loop, each Newton solve
+warm-started from the previous sub-step's ``w`` scaled by ``γ_i/γ_{i-1}`` (its stopping
+test uses ``|γ_i h|``: sub-steps can be negative).
+
+**Per-step diagnostics** (:func:`sweep_metrics`, what ``lgvi-jax bench`` times): after every
+step the compiled loop measures what ``lgvi-jax sweep`` records (``lgvi_jax.sweep``): the
+relative energy error ``|H − H0|/|H0|`` with the car-pendulum's energy written in Numba
+(:func:`numba_hamel.energy`: the model's closed-form inverse Legendre map, the same
+operations as :meth:`lgvi_jax.CarPendulum.energy`), the drifts of the cart momentum and of
+the vertical angular momentum, the orthogonality error ``‖RᵀR − I‖_F``, and the Newton
+iterations, reduced to running maxima and final values with the sweep's semantics (a
+failed trajectory stops, its final value is NaN, its maxima cover the steps before the
+failure). Checked against the sweep's metrics in ``tests/test_numba_baseline.py``.
 """
 
 from __future__ import annotations
@@ -50,6 +65,8 @@ from lgvi_jax.experiments import numba_hamel as _hamel
 from numba import njit
 
 METHODS = ("lgvi", *_hamel.METHODS)
+METRICS = _hamel.METRICS
+metrics_of_states = _hamel.metrics_of_states
 
 
 def params_from_model(model) -> np.ndarray:
@@ -116,33 +133,63 @@ def _eval(w0, w1, w2, R0, K0, K1, K2, px, py, h, prm, method):
 _inverse_jacobian, _step, _rollout_range = _hamel.solver_kernels(_eval)
 
 
-def _check(method):
-    if method not in METHODS:
-        raise ValueError(f"numba_lgvi: method must be one of {METHODS}, got {method!r}")
+def _resolve(method):
+    """``(rollout_range, integer code, gammas)`` of a method name: a base method of
+    :data:`METHODS`, or its composition ``METHOD@ORDER`` / ``METHOD@SCHEME`` with the
+    sub-steps of :func:`lgvi_jax.integrators.resolve_method` (``lgvi@4``: Suzuki's five)."""
+    from lgvi_jax.integrators import RIGID_METHODS, parse_method, resolve_method
+
+    try:
+        base, spec = parse_method(method)
+    except ValueError:
+        base, spec = None, None
+    if base not in METHODS:
+        raise ValueError(f"numba_lgvi: method must be one of {METHODS} (each also as "
+                         f"METHOD@ORDER, e.g. lgvi@4), got {method!r}")
+    gammas = (1.0,) if spec is None else resolve_method(method, RIGID_METHODS).gammas
+    if base == "lgvi":
+        return _rollout_range, 0, gammas
+    return _hamel._rollout_range, _hamel.CODES[base], gammas
+
+
+def _run(method, R, mu, q, p, h, n_steps, params, chord_steps, batch, **kwargs):
+    kernel, code, gammas = _resolve(method)
+    return _hamel.run_kernel(kernel, code, R, mu, q, p, h, n_steps, params, chord_steps,
+                             batch, gammas=gammas, **kwargs)
 
 
 def rollout(method, R, mu, q, p, h, n_steps, params, chord_steps=_hamel.CHORD_STEPS):
-    """One trajectory: ``(R, mu, q, p, newton_iterations_total, result_code)``."""
-    _check(method)
-    if method != "lgvi":
-        return _hamel.rollout(method, R, mu, q, p, h, n_steps, params, chord_steps)
-    R, mu, q, p, its, codes = _hamel.run_kernel(_rollout_range, 0, R, mu, q, p, h, n_steps,
-                                                params, chord_steps, False)
+    """One trajectory: ``(R, mu, q, p, newton_iterations_total, result_code)``. ``method``:
+    ``lgvi``, a Hamel method, or a composition of one (``lgvi@4``)."""
+    R, mu, q, p, its, codes = _run(method, R, mu, q, p, h, n_steps, params, chord_steps,
+                                   False)
     return R[0], mu[0], q[0], p[0], int(its[0]), int(codes[0])
 
 
 def rollout_batch(method, R, mu, q, p, h, n_steps, params, chord_steps=_hamel.CHORD_STEPS):
     """A batch (leading axis) in parallel over ``numba.get_num_threads()`` threads:
     ``(R, mu, q, p, iterations (B,), codes (B,))``."""
-    _check(method)
-    if method != "lgvi":
-        return _hamel.rollout_batch(method, R, mu, q, p, h, n_steps, params, chord_steps)
-    return _hamel.run_kernel(_rollout_range, 0, R, mu, q, p, h, n_steps, params,
-                             chord_steps, True)
+    return _run(method, R, mu, q, p, h, n_steps, params, chord_steps, True)
 
 
-def warmup() -> float:
-    """Compile everything on a tiny problem; return the seconds it took."""
+def sweep_metrics(method, R, mu, q, p, h, n_steps, params, *,
+                  chord_steps=_hamel.CHORD_STEPS, threads=None):
+    """A batch (leading axis) with the per-step diagnostics of ``lgvi-jax sweep``: after
+    every step the relative energy error, the drifts of the cart momentum and of the
+    vertical angular momentum and the orthogonality error, reduced as the sweep reduces
+    them. Returns ``(fields, (R, mu, q, p))``: ``fields`` the sweep's per-trajectory
+    arrays (``energy_error_max``, ``energy_error_final``, ``momentum_drift_max``,
+    ``angular_momentum_z_drift_max``, ``orthogonality_error_max``, ``newton_mean``,
+    ``newton_max``, ``result``, ``failed_step``), the final states after them. ``threads``:
+    default ``numba.get_num_threads()`` (1 for one trajectory on one core)."""
+    R, mu, q, p, _, _, fields = _run(method, R, mu, q, p, h, n_steps, params, chord_steps,
+                                     True, metrics=True, threads=threads)
+    return fields, (R, mu, q, p)
+
+
+def warmup(methods=("lgvi", "hamel")) -> float:
+    """Compile the loops of ``methods`` on a tiny problem (all Hamel methods share one:
+    the default compiles everything); return the seconds it took."""
     start = time.perf_counter()
     prm = np.array([1.0, 1.0, 9.81, 0.25, 0.25, 1.0, 1.1025, -0.0625, -0.25, -0.0625,
                     1.1025, -0.25, -0.25, -0.25, 0.165])
@@ -150,9 +197,10 @@ def warmup() -> float:
     mu, q, p = np.array([0.1, 0.2, 0.3]), np.zeros(2), np.zeros(2)
     # One compiled loop per residual: ``lgvi``, and all Hamel methods (the method is a
     # run-time code); ``rollout`` and ``rollout_batch`` share it.
-    for name in ("lgvi", "hamel"):
+    for name in methods:
         rollout(name, R, mu, q, p, 1e-3, 2, prm)
     return time.perf_counter() - start
 
 
-__all__ = ["METHODS", "numba", "params_from_model", "rollout", "rollout_batch", "warmup"]
+__all__ = ["METHODS", "METRICS", "metrics_of_states", "numba", "params_from_model", "rollout",
+           "rollout_batch", "sweep_metrics", "warmup"]

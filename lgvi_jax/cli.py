@@ -8,7 +8,6 @@ recorded in it), prints what failed, and exits with status 1.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import math
 import os
@@ -318,18 +317,10 @@ def cmd_sweep(args: argparse.Namespace) -> int:
         f"{len(config.dts)} step(s) on {len(devices)} {devices[0].platform} device(s)"
         + where)
     try:
-        from .integrators import Composition, with_chord_matrix, with_scalar_newton
+        from .sweep import sweep_method
 
         def make_method(name):
-            fused = fused_method(name, model, config.engine, config.chord)
-            if fused is not None:
-                return fused
-            method = with_chord_matrix(scene.method(name), config.chord)
-            if config.engine in ("auto", "scalar"):
-                method = with_scalar_newton(method)
-            elif isinstance(method, Composition):  # general: the array engine throughout
-                method = dataclasses.replace(method, scalar=False)
-            return method
+            return sweep_method(scene.name, model, name, config.engine, config.chord)
 
         summary = run_sweep(config, model, state0, make_method, Path(args.out),
                             resume=args.resume, progress=not quiet, log=log, warn=warn)
@@ -359,19 +350,37 @@ def cmd_sweep(args: argparse.Namespace) -> int:
 
 def cmd_bench(args: argparse.Namespace) -> int:
     configure_devices(args.devices)
-    from .experiments.bench_throughput import METHODS, run
+    from .experiments.bench_throughput import ENGINE_CHOICES, PARTS, run
+    from .scenes import SCENES
 
-    methods = tuple(_csv_list(args.methods, str, "--methods")) if args.methods else METHODS
-    for m in methods:
-        if m not in METHODS:
-            raise UsageError(f"--methods {m!r}: choose from {', '.join(METHODS)}")
+    systems = tuple(_csv_list(args.systems, str, "--systems"))
+    for s in systems:
+        if s not in SCENES or s == "oscillator":
+            raise UsageError(f"--systems {s!r}: choose from "
+                             f"{', '.join(k for k in SCENES if k != 'oscillator')}")
+    methods = tuple(_csv_list(args.methods, str, "--methods")) if args.methods else None
+    for m in methods or ():
+        for s in systems:
+            try:
+                SCENES[s].method(m)
+            except ValueError as err:
+                raise UsageError(f"--methods: {err}") from None
+    engines = tuple(_csv_list(args.engines, str, "--engines")) if args.engines else None
+    for e in engines or ():
+        if e not in ENGINE_CHOICES:
+            raise UsageError(f"--engines {e!r}: choose from {', '.join(ENGINE_CHOICES)}")
+    parts = tuple(_csv_list(args.parts, str, "--parts")) if args.parts else None
+    for p in parts or ():
+        if p not in PARTS:
+            raise UsageError(f"--parts {p!r}: choose from {', '.join(PARTS)}")
     out = Path(args.out)
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as err:
         raise UsageError(f"--out {out}: cannot create folder: {err.strerror}") from None
     run(out, quick=args.quick, steps=args.steps, batch=args.batch, methods=methods,
-        long_run=not args.no_long_run, log=lambda m: print(m, file=sys.stderr, flush=True))
+        systems=systems, engines=engines, parts=parts, long_run=not args.no_long_run,
+        log=lambda m: print(m, file=sys.stderr, flush=True))
     print((out / "bench.md").read_text(), end="")
     return 0
 
@@ -590,17 +599,31 @@ def build_parser() -> argparse.ArgumentParser:
                       "stop with one line and exit status 3 (default 60)")
     sw.set_defaults(func=cmd_sweep)
 
-    be = sub.add_parser("bench", help="throughput benchmark against the Numba baseline",
-                        description="Time the car-pendulum VIs (one trajectory and a batch) "
-                        "against a compiled-loop Numba baseline; writes bench.json and "
-                        "bench.md into OUT.")
+    be = sub.add_parser("bench", help="benchmark sweeps, gradients and fits, against Numba",
+                        description="Time what users run: the sweep's batched rollout with "
+                        "metrics every step (one trajectory and a batch) for each system, "
+                        "method and engine, beside compiled-loop Numba baselines with the "
+                        "same per-step diagnostics (car-pendulum); jax.grad through a long "
+                        "rollout; the inertia fit; the memory of long runs. Writes "
+                        "bench.json and bench.md into OUT.")
     be.add_argument("--out", required=True, metavar="DIR", help="output folder")
-    be.add_argument("--quick", action="store_true", help="small sizes (smoke test)")
+    be.add_argument("--quick", action="store_true",
+                    help="small sizes (smoke test): 1000 steps, batch 64, methods "
+                    "lgvi,hamel,lgvi@4, engines auto, parts throughput,gradient")
     be.add_argument("--steps", type=_positive_int, default=None, help="steps (default 10^4)")
     be.add_argument("--batch", type=_positive_int, default=None,
                     help="batch size (default 1024)")
     be.add_argument("--methods", default=None, metavar="M[,M...]",
-                    help="VI methods (default lgvi,hamel,hamel-cayley,hamel-exact)")
+                    help="methods, also METHOD@ORDER (default lgvi,hamel,hamel-cayley,"
+                    "hamel-exact,lgvi@4,lgvi@6,lgvi@8)")
+    be.add_argument("--systems", default="car-pendulum,heavy-top", metavar="S[,S...]",
+                    help="systems of the throughput part (default car-pendulum,heavy-top)")
+    be.add_argument("--engines", default=None, metavar="E[,E...]",
+                    help="sweep engines to time, as `sweep --engine` (auto, general, scalar, "
+                    "fused; default auto,scalar: the default and the autodiff engine on "
+                    "scalars, one row per engine they resolve to)")
+    be.add_argument("--parts", default=None, metavar="P[,P...]",
+                    help="throughput, gradient, fit (default all three)")
     be.add_argument("--no-long-run", action="store_true",
                     help="skip the 10^6-step bounded-memory run")
     be.add_argument("--devices", default="auto", metavar="auto|N",
@@ -644,7 +667,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    if args.command != "info":
+    if args.command not in ("info", "bench"):  # bench: compile times measured cold
         _cache.enable()  # compiled programs reused across runs (lgvi_jax._cache)
     try:
         code = args.func(args)

@@ -81,10 +81,12 @@ __all__ = [
     "SweepConfig",
     "SweepError",
     "batch_arguments",
+    "engine_name",
     "initial_conditions",
     "load_results",
     "run_batch",
     "run_sweep",
+    "sweep_method",
 ]
 
 FORMAT = {"format": "lgvi-jax-sweep", "version": 1}
@@ -199,6 +201,42 @@ class SweepConfig:
             raise SweepError(f"--sample-every must be an integer >= 1, got {self.sample_every!r}")
         if not isinstance(self.seed, int) or isinstance(self.seed, bool):
             raise SweepError(f"--seed must be an integer, got {self.seed!r}")
+
+
+def sweep_method(system: str, model, name: str, engine: str = "auto",
+                 chord: str = "exact") -> Any:
+    """The integrator that ``lgvi-jax sweep SYSTEM --method NAME --engine ENGINE --chord
+    CHORD`` runs on ``model``: the fused step where ``engine`` asks for one and it exists
+    (:func:`~lgvi_jax.integrators.fused_method`: the car-pendulum's ``lgvi`` and Hamel
+    VIs under ``auto``), else the scene's method (``NAME`` may be a composition,
+    ``lgvi@6``) with the chord matrix ``chord``, solved on scalars
+    (:func:`~lgvi_jax.integrators.with_scalar_newton`) under ``auto`` and ``scalar``.
+    Raises ``ValueError`` for an unknown method or an engine that cannot be honoured."""
+    from .integrators import Composition, fused_method, with_chord_matrix, with_scalar_newton
+    from .scenes import get_scene
+
+    fused = fused_method(name, model, engine, chord)
+    if fused is not None:
+        return fused
+    method = with_chord_matrix(get_scene(system).method(name), chord)
+    if engine in ("auto", "scalar"):
+        method = with_scalar_newton(method)
+    elif isinstance(method, Composition):  # general: the array engine throughout
+        method = dataclasses.replace(method, scalar=False)
+    return method
+
+
+def engine_name(method) -> str:
+    """``"fused"``, ``"scalar"`` (the autodiff engine solving on scalars) or ``"general"``
+    (the autodiff engine on arrays): which engine runs ``method`` (also inside a
+    composition)."""
+    from .integrators import Composition, FusedCarPendulum
+
+    if isinstance(method, FusedCarPendulum):
+        return "fused"
+    base = method._sub_step_method() if isinstance(method, Composition) else method
+    newton = getattr(base, "newton", None)
+    return "scalar" if getattr(newton, "scalar", False) else "general"
 
 
 # ---------------------------------------------------------------------------------------

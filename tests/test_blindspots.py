@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 import os
 import subprocess
 import sys
@@ -172,31 +173,53 @@ def test_heavy_top_sweep_set_and_sample_every(tmp_path, capsys):
 def test_bench_markdown_reports_the_measured_values(tmp_path):
     """The writer of ``bench.md`` (experiments/bench_throughput.py) on a small synthetic
     result: every row's numbers appear, the ratio is JAX over Numba, a missing baseline is
-    "n/a", the long-run table lists each run."""
+    "n/a", the gradient, fit and long-run tables list each row."""
     from lgvi_jax.experiments.bench_throughput import _markdown
 
     jax_row = {"single_steps_per_s": 12345.0, "batch_steps_per_s": 67890.0,
-               "compile_s": 1.5, "batch_compile_s": 2.25, "batch_xla_memory_mb": 0.5}
+               "single_compile_s": 1.5, "batch_compile_s": 2.25, "batch_xla_memory_mb": 0.5,
+               "single_failed": 0, "batch_failed": 1, "batch_energy_error_max": 1.25e-5}
+    numba_row = {"single_steps_per_s": 24690.0, "batch_steps_per_s": 13578.0,
+                 "single_failed": 0, "batch_failed": 0, "batch_energy_error_max": 1.5e-5}
     result = {
-        "dt": 5e-3, "steps": 50, "batch": 4, "repeats": 2,
+        "dt": 5e-3, "steps": 50, "batch": 4, "repeats": 2, "time_budget_s": 20.0,
         "environment": {"devices": ["cpu:0", "cpu:1"], "platform": "cpu",
                         "device_kind": "cpu", "cpu_count": 2, "jax": "0.0"},
         "numba": {"version": "0.0", "threads": 2},
-        "methods": {
-            "lgvi": {"jax": jax_row, "numba": {"single_steps_per_s": 24690.0,
-                                               "batch_steps_per_s": 13578.0},
-                     "ratio_single": 0.5, "ratio_batch": 5.0},
-            "lgvi, fused": {"jax": jax_row},
-        },
+        "throughput": [
+            {"system": "car-pendulum", "method": "lgvi", "engine": "fused", "jax": jax_row,
+             "numba": numba_row, "ratio_single": 0.5, "ratio_batch": 5.0},
+            {"system": "heavy-top", "method": "lgvi@4", "engine": "scalar", "jax": jax_row,
+             "numba": None},
+        ],
+        "gradient": [
+            {"method": "lgvi", "engine": "array", "steps": 50, "checkpoint_every": 5,
+             "forward_s": 0.002, "gradient_s": 0.005, "gradient_over_forward": 2.5,
+             "forward_compile_s": 3.0, "gradient_compile_s": 9.0, "gradient_rel_diff": 0.0},
+            {"method": "lgvi", "engine": "scalar", "steps": 50, "checkpoint_every": 5,
+             "forward_s": 0.001, "gradient_s": 0.004, "gradient_over_forward": 4.0,
+             "forward_compile_s": 5.0, "gradient_compile_s": 20.0,
+             "gradient_rel_diff": 2.5e-12},
+        ],
+        "fit": {"dt": 5e-3, "t_final": 5.0, "method": "lgvi", "engine": "general",
+                "optimizer": "lbfgs", "wall_s": 42.5, "compile_s": 30.25, "iterations": 250,
+                "stopped": "converged", "start_rel_error_J_c": 0.2,
+                "rel_error_J_c": 0.0019, "rel_error_J": 0.0001},
         "long_run": [{"n_steps": 10_000, "saved_states": 11, "peak_rss_mb": 321.0,
                       "steps_per_s": 4.5e4}],
         "process_peak_rss_mb": 512.0,
     }
     text = _markdown(result)
     assert "h = 0.005, 50 steps" in text and "batch of 4" in text
-    assert "| lgvi | 1.23e+04 | 2.47e+04 | 0.50 | 6.79e+04 | 1.36e+04 | 5.00 | 1.50, 2.25 | 0.5 |" \
-        in text
-    assert "| lgvi, fused | 1.23e+04 | n/a | nan | 6.79e+04 | n/a | nan |" in text
+    assert ("| car-pendulum | lgvi | fused | 1.23e+04 | 2.47e+04 | 0.50 | 6.79e+04 | 1.36e+04 "
+            "| 5.00 | 1, 0 | 1.25e-05, 1.50e-05 | 1.50, 2.25 | 0.50 |") in text
+    assert ("| heavy-top | lgvi@4 | scalar | 1.23e+04 | n/a | n/a | 6.79e+04 | n/a | n/a | "
+            "1, n/a | 1.25e-05, n/a | 1.50, 2.25 | 0.50 |") in text
+    assert "metrics every step" in text and "Both sides compute, after every step" in text
+    assert "| lgvi | array | 5 | 2 | 5 | 2.50 | 3.0, 9.0 | – |" in text
+    assert "| lgvi | scalar | 5 | 1 | 4 | 4.00 | 5.0, 20.0 | 2.5e-12 |" in text
+    assert "| 42.5 | 30.2 | 250 | converged | 0.190% | 0.010% |" in text
+    assert "(20% off)" in text
     assert "| 10000 | 11 | 321 | 4.5e+04 |" in text
     assert "2 cpu device(s)" in text and "Numba 0.0 with 2 threads" in text
     assert text.endswith("benchmark process: 512 MB.\n")
@@ -204,9 +227,14 @@ def test_bench_markdown_reports_the_measured_values(tmp_path):
 
 def test_bench_command_quick_run(tmp_path, capsys):
     """``lgvi-jax bench --quick`` end to end on one method, few steps and a small batch
-    (measured 24 s on a loaded 2-core machine, Numba's compilation included):
-    bench.json holds a positive throughput for each of lgvi's three variants, no failed
-    trajectory, and ratios that are JAX over Numba; bench.md is what was printed."""
+    (its quick parts: throughput and gradient; measured 41-43 s on a busy 2-core machine,
+    load average 3.5, where the previous quick run took 40 s; Numba's compilation and the
+    gradient's, 12 s, included): on the car-pendulum the fused step beside the Numba
+    baseline, on the heavy top the scalar engine without one. bench.json holds positive
+    throughputs, no failed trajectory, the same worst energy error on both sides (the same
+    equations and diagnostics: to the solvers' tolerance), ratios that are JAX over Numba,
+    and a finite gradient whose time over the forward run's is the reported ratio;
+    bench.md is what was printed."""
     out = tmp_path / "bench"
     code = main(["bench", "--out", str(out), "--quick", "--steps", "20", "--batch", "2",
                  "--methods", "lgvi", "--no-long-run"])
@@ -215,14 +243,29 @@ def test_bench_command_quick_run(tmp_path, capsys):
     result = json.loads((out / "bench.json").read_text())
     assert printed == (out / "bench.md").read_text()
     assert result["quick"] is True and result["steps"] == 20 and result["batch"] == 2
-    assert "long_run" not in result
-    assert set(result["methods"]) == {"lgvi", "lgvi, mass chord", "lgvi, fused"}
-    for row in result["methods"].values():
+    assert "long_run" not in result and "fit" not in result
+    rows = {(r["system"], r["method"], r["engine"]): r for r in result["throughput"]}
+    assert set(rows) == {("car-pendulum", "lgvi", "fused"), ("heavy-top", "lgvi", "scalar")}
+    for row in rows.values():
         j = row["jax"]
-        assert j["batch_failed"] == 0
+        assert j["single_failed"] == 0 and j["batch_failed"] == 0
         assert j["single_steps_per_s"] > 0 and j["batch_steps_per_s"] > 0
-        if "numba" in row:
-            assert row["ratio_single"] == pytest.approx(
-                j["single_steps_per_s"] / row["numba"]["single_steps_per_s"], rel=1e-12)
-            assert row["ratio_batch"] == pytest.approx(
-                j["batch_steps_per_s"] / row["numba"]["batch_steps_per_s"], rel=1e-12)
+        assert 0 < j["batch_energy_error_max"] < 1e-3 and j["batch_newton_mean"] >= 1
+    car, top = rows["car-pendulum", "lgvi", "fused"], rows["heavy-top", "lgvi", "scalar"]
+    n = car["numba"]
+    assert n["single_failed"] == 0 and n["batch_failed"] == 0
+    assert n["single_steps_per_s"] > 0 and n["batch_steps_per_s"] > 0
+    assert n["batch_energy_error_max"] == pytest.approx(car["jax"]["batch_energy_error_max"],
+                                                        rel=1e-6)
+    for k in ("single", "batch"):
+        assert car[f"ratio_{k}"] == pytest.approx(
+            car["jax"][f"{k}_steps_per_s"] / n[f"{k}_steps_per_s"], rel=1e-12)
+    assert top["numba"] is None and "ratio_single" not in top
+    assert "| heavy-top | lgvi | scalar |" in printed and "| n/a | n/a |" in printed
+    (grad,) = result["gradient"]
+    assert grad["method"] == "lgvi" and grad["engine"] == "array" and grad["steps"] == 20
+    assert not grad["forward_failed"] and not grad["gradient_failed"]
+    assert 0 < grad["gradient_norm"] < math.inf
+    assert 0 < grad["gradient_over_forward"] < math.inf
+    assert grad["gradient_over_forward"] == pytest.approx(
+        grad["gradient_s"] / grad["forward_s"], rel=1e-12)

@@ -1,5 +1,9 @@
-"""The Numba baseline of the benchmark solves the same discrete equations as our ``lgvi``."""
+"""The Numba baselines of the benchmark solve the same discrete equations as our VIs, and
+their per-step diagnostics compute what the sweep's metrics compute."""
 
+import equinox as eqx
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -106,3 +110,156 @@ def test_numba_hamel_matches_the_engine(name):
     if name != "hamel-cayley":
         *_, code = nb.rollout(name, R, mu * 1e4, q, p, 5e-3, 5, params)
         assert code == 1
+
+
+# ---------------------------------------------------------------------------------------
+# The per-step diagnostics of the benchmark's baselines (``sweep_metrics``) against the
+# sweep's metrics (lgvi_jax.sweep)
+# ---------------------------------------------------------------------------------------
+
+#: Unit roundoff of float64.
+U = 2.0**-53
+
+
+def _magnitudes(model, states):
+    """Per state: the energy's condition-free size ``T = ½(Σ|μ_i ω_i| + Σ|p_i v_i|) + m g
+    Σ|r3_i ρ_i|`` (the sum of the magnitudes of its terms), the condition number of the
+    3x3 Schur complement the inverse Legendre map solves, and the size of the vertical
+    angular momentum's terms."""
+    m, M, g = (float(x) for x in (model.m, model.M, model.g))
+    rho, J = np.asarray(model.rho_c), np.asarray(model.J)
+    R, mu, q, p = (np.asarray(x) for x in (states.R, states.mu, states.q, states.p))
+    omega, v = (np.asarray(x) for x in jax.vmap(model.velocities)(states.R, states.mu,
+                                                                  states.q, states.p))
+    T = 0.5 * (np.abs(mu * omega).sum(-1) + np.abs(p * v).sum(-1)) + m * g * np.abs(
+        R[:, 2] * rho).sum(-1)
+    c = np.cross(rho, R[:, 2])
+    schur = J - m * m / (m + M) * (rho @ rho * np.eye(3) - np.outer(rho, rho)
+                                   - c[:, :, None] * c[:, None, :])
+    kappa = np.linalg.cond(schur)
+    L = np.abs(R[:, 2] * mu).sum(-1) + np.abs(q[:, 0] * p[:, 1]) + np.abs(q[:, 1] * p[:, 0])
+    return T, kappa, L
+
+
+def test_numba_diagnostics_equal_the_sweeps_on_the_same_states():
+    """The compiled diagnostics of the baselines (energy, vertical angular momentum, cart
+    momentum, orthogonality error, reduced to the sweep's running maxima and final value)
+    on the very states of a JAX trajectory, against the same quantities from the JAX
+    model (what the sweep's metrics evaluate) reduced by the sweep's definitions: equal to
+    rounding, with bounds from the standard error analysis of the two evaluations."""
+    from lgvi_jax.experiments import numba_hamel as nh
+
+    from lgvi_jax.reference import moving_scene
+
+    model = moving_scene()  # generic attitude, cart moving: every term of H is non-zero
+    traj = lj.simulate(model, lj.LGVI(), model.default_state(), 5e-3, 200)
+    assert traj.ok
+    st = traj.state
+    R, mu, q, p = (np.ascontiguousarray(np.asarray(x)) for x in (st.R, st.mu, st.q, st.p))
+    params = nb.params_from_model(model)
+    E_jax = np.asarray(traj.invariants["energy"])
+    A, X = np.empty((3, 3)), np.empty(3)
+    E_nb = np.array([nh.energy(R[k], mu[k], q[k], p[k], params, A, X) for k in range(len(R))])
+    Lz_nb = np.array([nh.angular_momentum_z(R[k], mu[k], q[k], p[k]) for k in range(len(R))])
+    orth_nb = np.array([nh.orthogonality_error(R[k]) for k in range(len(R))])
+    # Energy, per state. Each side evaluates the same formula (the Schur complement, its
+    # pivot-free Gauss-Jordan solve for ω, then v and H) with at most ~30 roundings along
+    # any chain, so each is within γ_30 ≈ 30u of the exact value relative to the sum of
+    # the magnitudes of its terms T, except for the solve, whose relative error in ω is
+    # amplified by κ(S) (Higham, Accuracy and Stability of Numerical Algorithms, §3.1 and
+    # ch. 10: elimination without pivoting is stable on symmetric positive definite
+    # matrices). Two evaluations: |ΔH| <= 2 · 30 κ(S) u T <= 64 κ u T.
+    T, kappa, L = _magnitudes(model, st)
+    dH = 64 * kappa * U * T
+    assert np.all(np.abs(E_nb - E_jax) <= dH), np.max(np.abs(E_nb - E_jax) / dH)
+    # The vertical angular momentum: five products and four sums, |ΔL| <= 2 γ_5 L.
+    dL = 2 * 5 * U * L / (1 - 5 * U)
+    Lz_jax = np.asarray(traj.invariants["angular_momentum_z"])
+    assert np.all(np.abs(Lz_nb - Lz_jax) <= dL), np.max(np.abs(Lz_nb - Lz_jax) / dL)
+    # ‖RᵀR − I‖_F: each entry of RᵀR − I is three products, two sums and a subtraction of
+    # numbers of size <= 1 (|R_ij| <= 1 to rounding), so within γ_4 ≈ 4u on each side;
+    # over the 9 entries ‖ΔE‖_F <= 3 max|ΔE_ij| <= 3 · 2 · 4u = 24u (the square root and
+    # the squares of entries of size ~1e-15 add nothing at this scale); 32u allowed.
+    orth_jax = np.asarray(lj.so3.orthogonality_error(st.R))
+    assert np.all(np.abs(orth_nb - orth_jax) <= 32 * U)
+    # The running metrics over the trajectory, by the sweep's definitions (after each step:
+    # |H - H0|/|H0| and every momentum map's |I - I0|, their maxima and final values).
+    got = nb.metrics_of_states(R, mu, q, p, params)
+    err = np.abs(E_jax[1:] - E_jax[0]) / abs(E_jax[0])
+    # |Δ err_k| <= (ΔH_k + ΔH_0)/|H0| plus the rounding of the difference and quotient.
+    d_err = (dH[1:] + dH[0]) / abs(E_jax[0]) + 4 * U * err
+    assert abs(got["energy_error_max"] - err.max()) <= d_err.max()
+    assert abs(got["energy_error_final"] - err[-1]) <= d_err[-1]
+    Lz0 = Lz_jax[0]
+    assert abs(got["angular_momentum_z_drift_max"] - np.max(np.abs(Lz_jax[1:] - Lz0))) <= (
+        np.max(dL[1:] + dL[0]))
+    # The cart momentum: the same numbers on both sides, subtracted: equal exactly.
+    assert got["momentum_drift_max"] == np.max(np.abs(p[1:] - p[0]))
+    assert abs(got["orthogonality_error_max"] - orth_jax[1:].max()) <= 32 * U
+    assert err.max() > 1e-6  # an O(h²) energy error, far above the bounds (~1e-12)
+
+
+@pytest.mark.parametrize("name", ["lgvi", "hamel-exact"])
+def test_numba_sweep_metrics_equal_the_sweeps(name):
+    """``sweep_metrics`` (the benchmark's Numba baseline with per-step diagnostics) against
+    ``lgvi-jax sweep``'s batched rollout (``run_batch`` with the method the sweep builds by
+    default: the fused step) on the sweep's initial conditions, plus a trajectory that
+    fails at once. Both integrate the same discrete equations to their solvers'
+    tolerances, so the trajectories agree to the accumulated tolerance δ (< 1e-11 after 200
+    steps, test_numba_lgvi_matches_the_engine), and the metrics to the energy's
+    sensitivity to it plus the rounding of the test above."""
+    from lgvi_jax.sweep import initial_conditions, run_batch, sweep_method
+
+    model = lj.CarPendulum()
+    states = initial_conditions(model, model.default_state(), 4, 0.01, 0)
+    states = eqx.tree_at(lambda s: s.mu, states, states.mu.at[3].set(jnp.nan))  # fails
+    method = sweep_method("car-pendulum", model, name)
+    assert type(method).__name__ == "FusedCarPendulum"
+    ours = run_batch(model, method, states, 5e-3, 200)
+    arrays = [np.asarray(x) for x in (states.R, states.mu, states.q, states.p)]
+    theirs, _ = nb.sweep_metrics(name, *arrays, 5e-3, 200, nb.params_from_model(model))
+    assert set(theirs) == set(ours)
+    ok = slice(0, 3)
+    assert np.all(ours["result"][ok] == 0) and np.all(theirs["result"][ok] == 0)
+    # The energy's sensitivity to the state along these trajectories (measured on the
+    # central one): |∂H/∂μ| = |ω| <= 7.2, |∂H/∂p| = |v| <= 2.9, the potential's m g |ρ| =
+    # 10.4 per unit rotation of R, and the kinetic energy's dependence on R through the
+    # coupling, m |ρ| |v| |ω| <= 22: |ΔH| <= 50 δ = 5e-10 with δ = 1e-11, relative to
+    # |H0| >= 0.9 (0.97 to 1.14 here): 5.6e-10. (Measured: 1.6e-13.)
+    bound = 50 * 1e-11 / 0.9
+    for key in ("energy_error_max", "energy_error_final"):
+        np.testing.assert_allclose(theirs[key][ok], ours[key][ok], rtol=0, atol=bound)
+    # The momentum maps and orthogonality: both at round-off and solver-tolerance level.
+    np.testing.assert_array_equal(theirs["momentum_drift_max"][ok], 0.0)
+    np.testing.assert_array_equal(ours["momentum_drift_max"][ok], 0.0)
+    for key, tol in (("angular_momentum_z_drift_max", 1e-12),
+                     ("orthogonality_error_max", 1e-13)):
+        assert np.all(theirs[key][ok] <= tol) and np.all(ours[key][ok] <= tol), key
+    # Newton iterations: different solvers (the fused step starts each solve at w = 0 and
+    # stops at 1e-14, the baseline warm-starts at 1e-12): counted, not compared.
+    assert np.all(theirs["newton_mean"][ok] >= 2) and np.all(ours["newton_mean"][ok] >= 2)
+    assert np.all(theirs["newton_max"][ok] >= theirs["newton_mean"][ok])
+    # Failure is a value on both sides, with the sweep's semantics: flagged at step 0, the
+    # maxima NaN (no step succeeded), the final value NaN.
+    for r in (ours, theirs):
+        assert r["result"][3] != 0 and r["failed_step"][3] == 0
+        assert np.isnan(r["energy_error_max"][3]) and np.isnan(r["energy_error_final"][3])
+    np.testing.assert_array_equal(theirs["failed_step"][ok], -1)
+
+
+def test_numba_compositions_match_the_engine():
+    """``lgvi@4`` in the baseline (Suzuki's five sub-steps, one of them backwards) solves
+    the same equations as the engine's composition: end states to the accumulated solver
+    tolerance; five solves a step."""
+    model = lj.CarPendulum()
+    s0 = model.default_state()
+    traj = lj.simulate(model, lj.compose(lj.LGVI(), order=4), s0, 5e-3, 100)
+    R, mu, q, p = (np.asarray(x) for x in (s0.R, s0.mu, s0.q, s0.p))
+    *theirs, its, code = nb.rollout("lgvi@4", R, mu, q, p, 5e-3, 100,
+                                    nb.params_from_model(model))
+    assert traj.ok and code == 0 and its >= 5 * 2 * 100
+    for a, b in zip((traj.state.R, traj.state.mu, traj.state.q, traj.state.p), theirs,
+                    strict=True):
+        np.testing.assert_allclose(b, np.asarray(a)[-1], rtol=0, atol=1e-11)
+    with pytest.raises(ValueError, match="method must be one of"):
+        nb.rollout("rk4@4", R, mu, q, p, 5e-3, 1, nb.params_from_model(model))

@@ -23,9 +23,11 @@ from lgvi_jax.sweep import (
     KILL_HOOK_ENV,
     SweepConfig,
     SweepError,
+    engine_name,
     initial_conditions,
     run_batch,
     run_sweep,
+    sweep_method,
 )
 
 DT = 5e-3
@@ -45,6 +47,31 @@ def velocities(model, s):
 
 def _take(tree, i):
     return jax.tree.map(lambda x: x[i], tree)
+
+
+def test_sweep_method_builds_what_each_engine_names(car):
+    """``sweep_method`` (what ``lgvi-jax sweep --engine`` runs, also timed by ``lgvi-jax
+    bench``) and ``engine_name``: auto = fused for the car-pendulum's four VIs and the
+    autodiff engine on scalars otherwise (compositions, other systems); ``--chord mass``
+    stays on arrays; an impossible ``fused`` is refused."""
+    model, _ = car
+    top, _ = get_scene("heavy-top").build()
+    cases = [("car-pendulum", model, "lgvi", "auto", "exact", "fused"),
+             ("car-pendulum", model, "hamel-exact", "auto", "exact", "fused"),
+             ("car-pendulum", model, "lgvi", "scalar", "exact", "scalar"),
+             ("car-pendulum", model, "lgvi", "general", "exact", "general"),
+             ("car-pendulum", model, "lgvi", "auto", "mass", "general"),
+             ("car-pendulum", model, "lgvi@6", "auto", "exact", "scalar"),
+             ("heavy-top", top, "hamel", "auto", "exact", "scalar"),
+             ("heavy-top", top, "lgvi@4", "general", "exact", "general")]
+    for system, m, name, engine, chord, expected in cases:
+        method = sweep_method(system, m, name, engine, chord)
+        assert engine_name(method) == expected, (system, name, engine, chord)
+        assert method.name.partition("@")[0] == name.partition("@")[0]
+    assert sweep_method("car-pendulum", model, "lgvi@6").gammas == lj.compose(
+        lj.LGVI(), order=6).gammas
+    with pytest.raises(ValueError, match="--engine fused"):
+        sweep_method("heavy-top", top, "lgvi", "fused")
 
 
 def test_initial_conditions_reproducible_and_sized(car):
