@@ -159,9 +159,14 @@ class Newton(eqx.Module):
     adjoint: str = eqx.field(static=True, default="implicit")
     scalar: bool = eqx.field(static=True, default=False)
 
+    @property
+    def scalar_compatible(self) -> bool:
+        """Whether these settings can run on scalars (``scalar=True``): Newton or
+        ``chord_steps``; no ``chord``, ``broyden``, ``unroll`` or unrolled adjoint."""
+        return not (self.chord or self.broyden or self.unroll or self.adjoint != "implicit")
+
     def __check_init__(self):
-        if self.scalar and (self.chord or self.broyden or self.unroll
-                            or self.adjoint != "implicit"):
+        if self.scalar and not self.scalar_compatible:
             raise ValueError("Newton: scalar=True supports Newton and chord_steps (no chord, "
                              "broyden, unroll or unrolled adjoint)")
         if self.adjoint not in ("implicit", "unrolled"):

@@ -620,11 +620,9 @@ def with_scalar_newton(method: AbstractIntegrator) -> AbstractIntegrator:
     from .lie import AbstractLieVI
 
     def scalar(vi):
-        n = vi.newton
-        if (vi.chord_matrix != "exact" or n.chord or n.broyden or n.unroll
-                or n.adjoint != "implicit"):
+        if vi.chord_matrix != "exact" or not vi.newton.scalar_compatible:
             return vi
-        return dataclasses.replace(vi, newton=dataclasses.replace(n, scalar=True))
+        return dataclasses.replace(vi, newton=dataclasses.replace(vi.newton, scalar=True))
 
     if isinstance(method, AbstractLieVI):
         return scalar(method)
