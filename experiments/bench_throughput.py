@@ -27,7 +27,7 @@ Four parts (``lgvi-jax bench --out DIR``; writes ``bench.json`` and ``bench.md``
    the autodiff engine on arrays and on scalars), with the library's checkpointed rollout
    (``simulate(..., checkpoint_every=K)``, K near the square root of the steps): forward
    and gradient run times, their ratio, compile times.
-3. **Fit.** ``lgvi_jax.identify.fit`` with its defaults (``lgvi``, optax L-BFGS, the
+3. **Fit.** ``lgvi_jax.identify.fit`` with its defaults (``lgvi``, Levenberg–Marquardt, the
    autodiff engine on arrays) recovering the inertia from noise-free synthetic
    observations (every 0.05 s over 5 s from the independent reference) at h = 5e-3: wall
    time and the relative error of the recovered inertia.
@@ -74,8 +74,8 @@ METHODS = ("lgvi", "hamel", "hamel-cayley", "hamel-exact", "lgvi@4", "lgvi@6", "
 ENGINES = ("auto", "scalar")
 ENGINE_CHOICES = ("auto", "general", "scalar", "fused")
 PARTS = ("throughput", "gradient", "fit")
-#: ``--quick``: a smoke test of every part but the fit (whose L-BFGS step compiles for
-#: ~30 s), on fewer methods, the default engines only, and the gradient on arrays only (the
+#: ``--quick``: a smoke test of every part but the fit (whose Jacobian program compiles for
+#: ~8 s), on fewer methods, the default engines only, and the gradient on arrays only (the
 #: scalar engine's gradient compiles for ~20 s).
 QUICK_METHODS = ("lgvi", "hamel", "lgvi@4")
 QUICK_ENGINES = ("auto",)
@@ -294,7 +294,7 @@ def _fit(quick: bool, log) -> dict:
     times = FIT_OBS_EVERY * np.arange(round(t_final / FIT_OBS_EVERY) + 1)
     data = identify.observe(true, times)  # the independent reference (SciPy DOP853)
     obs = identify.check_observations(data, DT)
-    result = identify.fit(obs, DT, names=("J",))  # defaults: lgvi, L-BFGS, 300 iterations
+    result = identify.fit(obs, DT, names=("J",))  # defaults: lgvi, Gauss-Newton, 300 iterations
 
     def rel(a, b):
         return float(np.linalg.norm(np.asarray(a) - b) / np.linalg.norm(b))

@@ -649,11 +649,11 @@ def build_parser() -> argparse.ArgumentParser:
     fi.add_argument("--iterations", type=_positive_int, default=300, metavar="N",
                     help="most optimiser iterations (default 300)")
     fi.add_argument("--lr", type=_float, default=None,
-                    help="learning rate (adam, default 1e-2), first-step scale (lbfgs, "
-                    "default 1), or initial damping (gauss-newton, default 1e-3)")
+                    help="initial damping (gauss-newton, default 1e-3), learning rate "
+                    "(adam, default 1e-2), or first-step scale (lbfgs, default 1)")
     fi.add_argument("--optimizer", choices=["lbfgs", "adam", "gauss-newton"],
-                    default="lbfgs", help="optax L-BFGS (default), optax Adam, or "
-                    "Levenberg-Marquardt with forward-mode Jacobians")
+                    default="gauss-newton", help="Levenberg-Marquardt with forward-mode "
+                    "Jacobians (default), L-BFGS, or optax Adam")
     fi.add_argument("--out", required=True, metavar="FIT.json", help="output file (.json)")
     fi.add_argument("--json", action="store_true",
                     help="print a one-object JSON summary (no progress bar)")

@@ -32,11 +32,15 @@ estimate and its value at the truth is about the noise variance.
 the implicit function theorem (:mod:`lgvi_jax.newton`), never by unrolling, and
 ``checkpoint_every`` bounds the memory of long rollouts (:mod:`lgvi_jax.simulate`).
 
-**Optimisers** (optax): ``"lbfgs"`` (default: :func:`optax.lbfgs` with its zoom line search
-on the strong Wolfe conditions; Nocedal & Wright, *Numerical Optimization*, 2nd ed., ch. 6–7)
-and ``"adam"`` (Kingma & Ba, 2015). The loss is a small-residual nonlinear least-squares
-problem in 6–20 unknowns, where quasi-Newton converges superlinearly and Adam only linearly;
-``experiments/identify_inertia.py`` measures both.
+**Optimisers.** ``"gauss-newton"`` (default): Levenberg–Marquardt on the residuals with
+forward-mode Jacobians (:class:`_LevenbergMarquardt`; Moré 1978); ``"lbfgs"``: L-BFGS
+(optax's memory, SciPy's strong-Wolfe line search; Nocedal & Wright, *Numerical
+Optimization*, 2nd ed., ch. 6–7); ``"adam"`` (optax; Kingma & Ba, 2015). The loss is a
+small-residual nonlinear least-squares problem in 6–20 unknowns, where Gauss–Newton
+converges about quadratically, quasi-Newton superlinearly and Adam only linearly
+(``experiments/identify_inertia.py`` measures them). The first two run their iteration on
+the host around one compiled program each (the loss and gradient, or the residuals and
+Jacobian), so that a fit compiles the rollout's derivative once.
 """
 
 from __future__ import annotations
@@ -46,6 +50,7 @@ import functools
 import itertools
 import math
 import time
+import warnings
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
@@ -55,6 +60,7 @@ import jax.flatten_util
 import jax.numpy as jnp
 import numpy as np
 import optax
+import scipy.optimize
 
 from . import so3
 from .inertia import centroidal_inertia, inertia_from_params, params_from_inertia, pivot_inertia
@@ -373,7 +379,8 @@ class FitResult:
         loss_initial, loss_final: the loss over the whole horizon at the start and the end.
         iterations: optimiser iterations taken.
         wall_time_s: wall time of the fit, compilation included.
-        compile_time_s: of which the first (compiling) iteration.
+        compile_time_s: of which the time to the end of the first iteration (the
+            compilation, the initial loss and the first iteration's evaluations).
         stopped: why it stopped (``"converged"``, ``"iterations"`` or ``"non-finite"``).
         stage_starts: the iteration at which each horizon stage began.
         horizons: each stage's last observation time.
@@ -432,12 +439,12 @@ class FitResult:
 
 
 @functools.lru_cache(maxsize=32)
-def _optimizer(name: str, lr: float | None) -> optax.GradientTransformationExtraArgs:
+def _optimizer(name: str, lr: float | None):
     # Cached: an optax transformation is a tuple of closures, static under jit and hashed by
-    # identity, so a new one for every fit would recompile the step every time.
+    # identity, so a new one for every fit would recompile its update every time.
     if name == "lbfgs":
         # lr scales the initial step of the line search (1 = the quasi-Newton step).
-        return optax.lbfgs(learning_rate=lr)
+        return _HostLBFGS(scale=1.0 if lr is None else float(lr))
     if name == "adam":
         return optax.adam(1e-2 if lr is None else lr)
     if name == "gauss-newton":
@@ -446,72 +453,204 @@ def _optimizer(name: str, lr: float | None) -> optax.GradientTransformationExtra
 
 
 @eqx.filter_jit
-def _lbfgs_step(opt, params, state, problem):
-    def value_fn(p):
-        return _loss(p, problem)
-
-    value, grad = optax.value_and_grad_from_state(value_fn)(params, state=state)
-    updates, state = opt.update(grad, state, params, value=value, grad=grad,
-                                value_fn=value_fn)
-    return optax.apply_updates(params, updates), state, value
+def _value_and_grad(params, problem):
+    return jax.value_and_grad(_loss)(params, problem)
 
 
 @eqx.filter_jit
+def _residuals_and_jacobian(params, problem):
+    """``(r, ∂r/∂θ)`` with respect to the flattened parameters, one forward-mode pass (the
+    primal rides along with the tangents)."""
+    flat, unravel = jax.flatten_util.ravel_pytree(params)
+
+    def res(x):
+        r = _residuals(unravel(x), problem)
+        return r, r
+
+    J, r = jax.jacfwd(res, has_aux=True)(flat)
+    return r, J
+
+
+class _Evaluator:
+    """The loss and its gradient at flat parameters through the one compiled
+    :func:`_value_and_grad`, remembering the last point (a line search asks for the value
+    and then the gradient at the same point)."""
+
+    def __init__(self, unravel, problem):
+        self.unravel, self.problem = unravel, problem
+        self.x = self.value = self.grad = None
+
+    def __call__(self, x: np.ndarray) -> tuple[float, np.ndarray]:
+        if self.x is None or not np.array_equal(x, self.x):
+            v, g = _value_and_grad(self.unravel(jnp.asarray(x)), self.problem)
+            g = np.asarray(jax.flatten_util.ravel_pytree(g)[0])
+            self.x, self.value, self.grad = np.array(x), float(v), g
+        return self.value, self.grad
+
+    def f(self, x):
+        v = self(x)[0]
+        return v if math.isfinite(v) else math.inf
+
+    def fprime(self, x):
+        return self(x)[1]
+
+
+class _HostLBFGSState:
+    """Per stage: optax's L-BFGS memory and the loss and gradient at the current
+    parameters (``None`` until the stage's first iteration)."""
+
+    def __init__(self, memory):
+        self.memory, self.value, self.grad, self.previous = memory, None, None, None
+        self.stuck = False
+
+
+@dataclasses.dataclass(frozen=True)
+class _HostLBFGS:
+    """L-BFGS driven from the host: the direction from optax's memory
+    (:func:`optax.scale_by_lbfgs`, Nocedal & Wright alg. 7.4), the step length by SciPy's
+    line search on the strong Wolfe conditions (:func:`scipy.optimize.line_search`, N&W
+    alg. 3.5–3.6; a backtracking Armijo search if it fails), every loss and gradient by
+    the one compiled program :func:`_value_and_grad`. ``optax.lbfgs`` runs its line search
+    inside the compiled update, which holds two more copies of the rollout's gradient (its
+    zoom search and the value-and-gradient reuse): three times the compilation for the same
+    iterates' mathematics."""
+
+    scale: float = 1.0
+
+    def init(self, params):
+        return _HostLBFGSState(_lbfgs_memory_init(jax.flatten_util.ravel_pytree(params)[0]))
+
+    def step(self, params, state: _HostLBFGSState, problem):
+        flat, unravel = jax.flatten_util.ravel_pytree(params)
+        x = np.asarray(flat)
+        ev = _Evaluator(unravel, problem)
+        if state.value is None:
+            state.value, state.grad = ev(x)
+        else:
+            ev.x, ev.value, ev.grad = x, state.value, state.grad
+        value, grad = state.value, state.grad
+        if not (math.isfinite(value) and np.all(np.isfinite(grad))):
+            return params, state, value
+        direction, memory = _lbfgs_direction(jnp.asarray(grad), state.memory, jnp.asarray(x))
+        d = -self.scale * np.asarray(direction)
+        slope = float(grad @ d)
+        if not slope < 0:  # not a descent direction: steepest descent
+            d, slope = -grad, -float(grad @ grad)
+        alpha = None
+        if not state.stuck:
+            with warnings.catch_warnings():  # a failed search is handled below
+                warnings.simplefilter("ignore", RuntimeWarning)  # SciPy's LineSearchWarning
+                alpha = scipy.optimize.line_search(
+                    ev.f, ev.fprime, x, d, gfk=grad, old_fval=value,
+                    maxiter=10)[0]  # first trial: the quasi-Newton step
+            if alpha is None:  # Armijo backtracking on finite values
+                alpha = 1.0
+                for _ in range(10):
+                    if ev.f(x + alpha * d) <= value + 1e-4 * alpha * slope:
+                        break
+                    alpha *= 0.5
+                else:
+                    alpha = None
+        if alpha is None:
+            # No decrease along the direction (the loss at its rounding level): stay; the
+            # fit's stopping rule sees the loss unchanged.
+            state.stuck = True
+            return params, state, value
+        x_new = x + alpha * d
+        new = _HostLBFGSState(memory)
+        new.value, new.grad = ev(x_new)
+        new.previous = value
+        return unravel(jnp.asarray(x_new)), new, value
+
+
+@jax.jit
+def _lbfgs_memory_init(params):
+    return optax.scale_by_lbfgs().init(params)
+
+
+@jax.jit
+def _lbfgs_direction(grad, memory, x):
+    return optax.scale_by_lbfgs().update(grad, memory, x)
+
+
 def _adam_step(opt, params, state, problem):
+    return _adam_step_jit(opt, params, state, problem)
+
+
+@eqx.filter_jit
+def _adam_step_jit(opt, params, state, problem):
     value, grad = jax.value_and_grad(_loss)(params, problem)
     updates, state = opt.update(grad, state, params)
     return optax.apply_updates(params, updates), state, value
 
 
-class _LMState(eqx.Module):
-    damping: jax.Array
+class _LMState:
+    """The damping and the residuals and Jacobian at the current parameters (``None``
+    until the stage's first iteration)."""
+
+    def __init__(self, damping):
+        self.damping, self.r, self.J = damping, None, None
 
 
-class _LevenbergMarquardt(eqx.Module):
+@dataclasses.dataclass(frozen=True)
+class _LevenbergMarquardt:
     """Levenberg–Marquardt on the residuals (Moré 1978, with Marquardt's scaling by the
     diagonal of ``JᵀJ``): the step solves ``(JᵀJ + λ diag(JᵀJ)) δ = −Jᵀr``, with the
-    Jacobian ``J = ∂r/∂θ`` by forward mode (one tangent per parameter, ``jax.jacfwd``
-    through the rollout and the implicit-function-theorem Newton derivatives). A step that
-    lowers the loss is taken and ``λ`` divided by 3; otherwise it is refused and ``λ``
-    multiplied by 4. Near a small-residual optimum this is Gauss–Newton: quadratic-like
-    convergence in a few iterations."""
+    Jacobian ``J = ∂r/∂θ`` by forward mode (one tangent per parameter through the rollout
+    and the implicit-function-theorem Newton derivatives). A step that lowers the loss is
+    taken and ``λ`` divided by 3; otherwise it is refused and ``λ`` multiplied by 4. Near a
+    small-residual optimum this is Gauss–Newton: quadratic-like convergence in a few
+    iterations. Driven from the host: residuals and Jacobian come from one compiled
+    program (:func:`_residuals_and_jacobian`), also at the trial point, whose Jacobian is
+    the next iteration's when the step is taken."""
 
     damping0: float = 1e-3
 
     def init(self, params):
-        return _LMState(damping=jnp.asarray(self.damping0, jnp.float64))
+        return _LMState(self.damping0)
 
-
-@eqx.filter_jit
-def _lm_step(opt, params, state, problem):
-    flat, unravel = jax.flatten_util.ravel_pytree(params)
-
-    def res(x):
-        return _residuals(unravel(x), problem)
-
-    r = res(flat)
-    J = jax.jacfwd(res)(flat)
-    value = jnp.sum(r**2)
-    JtJ = J.T @ J
-    g = J.T @ r
-    lam = state.damping
-    A = JtJ + lam * jnp.diag(jnp.diag(JtJ) + 1e-300)
-    delta = -jnp.linalg.solve(A, g)
-    trial = flat + delta
-    r_new = res(trial)
-    value_new = jnp.sum(r_new**2)
-    better = jnp.isfinite(value_new) & (value_new < value)
-    new_flat = jnp.where(better, trial, flat)
-    lam = jnp.where(better, jnp.maximum(lam / 3.0, 1e-12), jnp.minimum(lam * 4.0, 1e12))
-    return unravel(new_flat), _LMState(damping=lam), value
+    def step(self, params, state: _LMState, problem):
+        flat, unravel = jax.flatten_util.ravel_pytree(params)
+        if state.r is None:
+            state.r, state.J = (np.asarray(a) for a in _residuals_and_jacobian(params, problem))
+        r, J, lam = state.r, state.J, state.damping
+        value = float(np.sum(r**2))
+        if not (math.isfinite(value) and np.all(np.isfinite(J))):
+            return params, state, value
+        JtJ = J.T @ J
+        A = JtJ + lam * np.diag(np.diag(JtJ) + 1e-300)
+        try:
+            delta = -np.linalg.solve(A, J.T @ r)
+        except np.linalg.LinAlgError:
+            delta = -np.linalg.lstsq(A, J.T @ r, rcond=None)[0]
+        trial = np.asarray(flat) + delta
+        r_new, J_new = (np.asarray(a) for a in
+                        _residuals_and_jacobian(unravel(jnp.asarray(trial)), problem))
+        value_new = float(np.sum(r_new**2))
+        new = _LMState(lam)
+        if math.isfinite(value_new) and value_new < value:
+            new.damping, new.r, new.J = max(lam / 3.0, 1e-12), r_new, J_new
+            return unravel(jnp.asarray(trial)), new, value
+        new.damping, new.r, new.J = min(lam * 4.0, 1e12), r, J
+        return params, new, value
 
 
 _loss_jit = eqx.filter_jit(_loss)
 
 
+def _loss_value(optimizer: str, params, problem) -> float:
+    """The loss through the program the optimiser compiles anyway (no extra compilation):
+    the gradient's for L-BFGS, the residuals' and Jacobian's for Gauss–Newton."""
+    if optimizer == "lbfgs":
+        return float(_value_and_grad(params, problem)[0])
+    if optimizer == "gauss-newton":
+        return float(jnp.sum(_residuals_and_jacobian(params, problem)[0] ** 2))
+    return float(_loss_jit(params, problem))
+
+
 def fit(obs: Observations, dt: float, *, names: Sequence[str] = ("J",),
         model: CarPendulum | None = None, method: str | AbstractIntegrator = "lgvi",
-        optimizer: str = "lbfgs", iterations: int = 300, lr: float | None = None,
+        optimizer: str = "gauss-newton", iterations: int = 300, lr: float | None = None,
         horizons: Sequence[float] = HORIZONS, tol: float = 1e-10, patience: int = 3,
         checkpoint_every: int | None = None, progress: bool = False,
         callback: Callable[[int, float], None] | None = None) -> FitResult:
@@ -533,12 +672,13 @@ def fit(obs: Observations, dt: float, *, names: Sequence[str] = ("J",),
         model: the starting (and fixed) parameters; default the paper's ``CarPendulum()``.
             Its initial state is replaced by the observations'.
         method: an integrator or its name (``lgvi``, ``hamel-exact``, ...).
-        optimizer: ``"lbfgs"`` (default) or ``"adam"``.
+        optimizer: ``"gauss-newton"`` (default), ``"lbfgs"`` or ``"adam"``.
         iterations: the most optimiser iterations in all (>= 1), shared by the stages:
             each stage may use up to the iterations the earlier ones left, less one per
             stage still to come.
-        lr: Adam's learning rate (default 1e-2), or the scale of L-BFGS's first trial step
-            (default 1, the quasi-Newton step).
+        lr: Levenberg–Marquardt's initial damping (default 1e-3), Adam's learning rate
+            (default 1e-2), or the scale of L-BFGS's first trial step (default 1, the
+            quasi-Newton step).
         horizons: increasing fractions of the observed time span, the last 1.0; ``(1.0,)``
             fits the whole trajectory at once.
         tol, patience: a stage ends when the loss has changed by at most ``tol`` relative
@@ -565,7 +705,7 @@ def fit(obs: Observations, dt: float, *, names: Sequence[str] = ("J",),
     _, params, problem = make_loss(obs, dt, names=names, model=model, method=method,
                                       checkpoint_every=checkpoint_every)
     opt = _optimizer(optimizer, lr)
-    step = {"lbfgs": _lbfgs_step, "adam": _adam_step, "gauss-newton": _lm_step}[optimizer]
+    step = _adam_step if optimizer == "adam" else type(opt).step
     t_obs = np.asarray(obs.t)
     # Stages whose horizon includes no new observation are skipped (same loss).
     stages = []
@@ -575,7 +715,7 @@ def fit(obs: Observations, dt: float, *, names: Sequence[str] = ("J",),
             stages.append(w)
     bar = Progress(iterations, label="fit", unit="it", enabled=progress)
     start = time.perf_counter()
-    loss_initial = float(_loss_jit(params, problem))  # over the whole horizon
+    loss_initial = _loss_value(optimizer, params, problem)  # over the whole horizon
     history: list[float] = []
     stage_starts: list[int] = []
     compile_s = 0.0
@@ -592,11 +732,10 @@ def fit(obs: Observations, dt: float, *, names: Sequence[str] = ("J",),
         stage_starts.append(it)
         stopped = "iterations"
         for _ in range(max(budget, 1 if j == len(stages) - 1 else 0)):
-            t_it = time.perf_counter()
             new_params, new_state, value = step(opt, params, state, problem)
             value = float(value)  # the loss at ``params``, before this iteration's update
             if it == 0:
-                compile_s = time.perf_counter() - t_it
+                compile_s = time.perf_counter() - start
             if not math.isfinite(value):
                 # The last update led to a failed rollout (or the start did): back to the
                 # iterate before it, and that update is not counted.
@@ -624,7 +763,7 @@ def fit(obs: Observations, dt: float, *, names: Sequence[str] = ("J",),
     bar.total = it
     bar.close()
     problem = eqx.tree_at(lambda p: p.weights, problem, jnp.asarray(stages[-1]))
-    loss_final = float(_loss_jit(params, problem))
+    loss_final = _loss_value(optimizer, params, problem)
     history.append(loss_final)
     wall = time.perf_counter() - start
     return FitResult(

@@ -39,18 +39,18 @@ def _truth(m=1.0, rho_c=PAPER_RHO_C):
     return lj.CarPendulum(m=m, rho_c=rho_c, J=np.asarray(pivot_inertia(J_C0, m, rho_c)))
 
 
-# ------------------------------------------------------------------------- fit (L-BFGS)
+# --------------------------------------------------------- fit (default, L-BFGS)
 
 
 def test_library_fit_recovers_the_mass_with_the_default_optimiser():
-    """``identify.fit`` with its default optimiser (optax L-BFGS) and ``names=("m",)``,
+    """``identify.fit`` with its default optimiser (Levenberg–Marquardt) and ``names=("m",)``,
     from the paper's m = 1 to data of m = 1.25: the mass recovered to the step's bias
     (the O(h^2) error of lgvi at h = 0.01 against the exact reference; 1e-2 allowed), the
     loss down to the step's floor, J_c untouched."""
     m_true = 1.25
     obs = identify.check_observations(identify.observe(_truth(m=m_true), TIMES), FIT_DT)
     result = identify.fit(obs, FIT_DT, names=("m",), iterations=60)
-    assert result.optimizer == "lbfgs" and result.names == ("m",)
+    assert result.optimizer == "gauss-newton" and result.names == ("m",)
     assert abs(float(result.model.m) - m_true) <= 1e-2 * m_true, float(result.model.m)
     # The loss cannot reach 0: the step's own error stays (O(h^2) in the attitude, a
     # loss of ~1e-6). The fit gets down to that floor, the loss at the true mass, from
@@ -66,7 +66,7 @@ def test_library_fit_recovers_the_mass_with_the_default_optimiser():
 
 
 def test_fit_command_lbfgs_rho_c_with_lr_and_json(tmp_path, capsys):
-    """``lgvi-jax fit --fit rho_c --lr 0.5 --json`` (default optimiser): the printed JSON
+    """``lgvi-jax fit --fit rho_c --optimizer lbfgs --lr 0.5 --json``: the printed JSON
     and the written file carry the recovered mass-centre offset near the truth, a loss
     brought down from the start's, and the options used."""
     rho_true = np.array([0.2, 0.3, 0.9])
@@ -75,7 +75,7 @@ def test_fit_command_lbfgs_rho_c_with_lr_and_json(tmp_path, capsys):
     np.savez(path, **data)
     out = tmp_path / "fit.json"
     code = main(["fit", "car-pendulum", "--data", str(path), "--method", "lgvi",
-                 "--dt", str(FIT_DT), "--fit", "rho_c", "--lr", "0.5",
+                 "--dt", str(FIT_DT), "--fit", "rho_c", "--optimizer", "lbfgs", "--lr", "0.5",
                  "--iterations", "80", "--out", str(out), "--json"])
     assert code == 0
     printed = json.loads(capsys.readouterr().out)
