@@ -384,6 +384,12 @@ _RUNNERS: dict[Any, Callable] = {}
 #: cache. Measured on one core (lgvi, mass chord, 2000 steps): 1.23e6 steps/s for 512 at
 #: once, 8.9e5 for 1024 or 2048 at once, 1.22e6 for 2048 in blocks of 512.
 BLOCK = 512
+#: The block size for the steps emitted on scalars (the scalar engine, the fused steps):
+#: their hundreds of live values are each a vector over the block, so the working set grows
+#: with it. Measured (2 devices, 1024 trajectories, 2000 steps, interleaved): car-pendulum
+#: ``lgvi`` on scalars 2.2e6 / 1.5e6 / 8.4e5 steps/s in blocks of 128 / 256 / 512, fused
+#: ``hamel`` 3.1e6 / 1.9e6 (128 / 512); the array engine has no such preference.
+SCALAR_BLOCK = 128
 
 
 def _vmap_in_blocks(f, states, block: int):
@@ -405,11 +411,10 @@ def _vmap_in_blocks(f, states, block: int):
     return jax.tree.map(lambda y: y.reshape(n_blocks * size, *y.shape[2:])[:batch], out)
 
 
-def _runner(devices: tuple, kind: str = "metrics") -> Callable:
+def _runner(devices: tuple, kind: str = "metrics", block: int = BLOCK) -> Callable:
     """A jitted batched rollout (``kind`` = ``"metrics"`` or ``"final"``), sharded over
-    ``devices`` with ``shard_map``, each device's share in blocks of at most :data:`BLOCK`
+    ``devices`` with ``shard_map``, each device's share in blocks of at most ``block``
     (cached per device set, kind and block size)."""
-    block = BLOCK
     key = (devices, kind, block)
     if key in _RUNNERS:
         return _RUNNERS[key]
@@ -464,7 +469,8 @@ def batch_arguments(model, method, states, dt, n_steps, *, sample_every=1, devic
     params, static = eqx.partition((model, method), eqx.is_array)
     args = (_place(params, devices, False), static, _place(states, devices, True),
             jnp.float64(dt), jnp.int32(n_steps), jnp.int32(sample_every))
-    return _runner(devices, kind), args
+    block = BLOCK if engine_name(method) == "general" else min(BLOCK, SCALAR_BLOCK)
+    return _runner(devices, kind, block), args
 
 
 def run_batch(model, method, states, dt: float, n_steps: int, *, sample_every: int = 1,
