@@ -68,6 +68,32 @@ def pytest_configure(config):
     _cache.enable()
 
 
+#: The modules that take longest (wall seconds each, measured on a 2-core machine under
+#: ``-n auto``), longest first. pytest-xdist's ``--dist loadscope`` hands out whole modules,
+#: by default those with the most tests first, which put the few-test modules with the
+#: longest fixtures (the reproductions, the notebooks) at the end of the run, where one
+#: worker finishes them while the other has nothing left. With ``--no-loadscope-reorder``
+#: (pyproject.toml) the order below is the order they are handed out (longest first: the
+#: short modules fill in at the end); the others follow in their usual order. Only the
+#: order changes: a module missing here, or a stale estimate, costs time, not a test.
+LONGEST_FIRST = (
+    "test_lie.py", "test_scalarize.py", "test_identify.py", "test_distributed.py",
+    "test_blindspots.py", "test_experiments.py", "test_notebooks.py",
+    "test_reproduce_full.py", "test_fused.py", "test_sweep.py", "test_numba_baseline.py",
+    "test_composition.py", "test_xla.py",
+)
+
+
+def pytest_collection_modifyitems(session, config, items):
+    rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
+
+    def key(item):
+        module = item.nodeid.split("::", 1)[0].rsplit("/", 1)[-1]
+        return rank.get(module, len(rank))
+
+    items.sort(key=key)  # stable: the order within a module, and of the others, is kept
+
+
 def pytest_unconfigure(config):
     path = getattr(config, "_lgvi_cache_dir", None)
     if path:
