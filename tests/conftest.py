@@ -5,7 +5,13 @@ starts; this file must not import :mod:`jax` or :mod:`lgvi_jax` at the top):
 * two XLA host devices, so that the sharded code paths (sweeps) run on a CPU-only machine
   too;
 * the command line's persistent compilation cache (lgvi_jax._cache) in a temporary folder
-  of this run, shared by its workers and children, instead of the user's ~/.cache;
+  of this run, shared by its workers and children, instead of the user's ~/.cache; turned
+  on in the workers too (not only in command-line runs), so that a program compiled by
+  one worker or child is loaded, not compiled again, by the others. The folder is new for
+  each run (nothing compiled from an earlier state of the code is reused), and an entry's
+  key covers the program, the JAX/XLA versions and ``XLA_FLAGS``, so a hit is the same
+  compiled program (before, a worker's first in-process ``main([...])`` turned the cache
+  on for the rest of that worker's tests anyway, depending on the order of the tests);
 * with ``--alt-numerics`` (docs/testing.md), a numerically different but valid compilation
   of every program: the bounds of the suite must hold under both. Set in ``os.environ``,
   so the children that tests start (CLI runs, experiment scripts) inherit it.
@@ -57,6 +63,35 @@ def pytest_configure(config):
     import jax  # after the environment is set; JAX reads XLA_FLAGS when its backend starts
 
     jax.config.update("jax_num_cpu_devices", 2)
+    from lgvi_jax import _cache  # after the environment is set, as jax above
+
+    _cache.enable()
+
+
+#: The modules that take longest (wall seconds each, measured on a 2-core machine under
+#: ``-n auto``), longest first. pytest-xdist's ``--dist loadscope`` hands out whole modules,
+#: by default those with the most tests first, which put the few-test modules with the
+#: longest fixtures (the reproductions, the notebooks) at the end of the run, where one
+#: worker finishes them while the other has nothing left. With ``--no-loadscope-reorder``
+#: (pyproject.toml) the order below is the order they are handed out (longest first: the
+#: short modules fill in at the end); the others follow in their usual order. Only the
+#: order changes: a module missing here, or a stale estimate, costs time, not a test.
+LONGEST_FIRST = (
+    "test_lie.py", "test_scalarize.py", "test_identify.py", "test_distributed.py",
+    "test_blindspots.py", "test_experiments.py", "test_notebooks.py",
+    "test_reproduce_full.py", "test_fused.py", "test_sweep.py", "test_numba_baseline.py",
+    "test_composition.py", "test_xla.py",
+)
+
+
+def pytest_collection_modifyitems(session, config, items):
+    rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
+
+    def key(item):
+        module = item.nodeid.split("::", 1)[0].rsplit("/", 1)[-1]
+        return rank.get(module, len(rank))
+
+    items.sort(key=key)  # stable: the order within a module, and of the others, is kept
 
 
 def pytest_unconfigure(config):
