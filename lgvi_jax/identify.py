@@ -500,8 +500,7 @@ class _HostLBFGSState:
     parameters (``None`` until the stage's first iteration)."""
 
     def __init__(self, memory):
-        self.memory, self.value, self.grad, self.previous = memory, None, None, None
-        self.stuck = False
+        self.memory, self.value, self.grad, self.stuck = memory, None, None, False
 
 
 @dataclasses.dataclass(frozen=True)
@@ -559,7 +558,6 @@ class _HostLBFGS:
         x_new = x + alpha * d
         new = _HostLBFGSState(memory)
         new.value, new.grad = ev(x_new)
-        new.previous = value
         return unravel(jnp.asarray(x_new)), new, value
 
 
@@ -573,12 +571,8 @@ def _lbfgs_direction(grad, memory, x):
     return optax.scale_by_lbfgs().update(grad, memory, x)
 
 
-def _adam_step(opt, params, state, problem):
-    return _adam_step_jit(opt, params, state, problem)
-
-
 @eqx.filter_jit
-def _adam_step_jit(opt, params, state, problem):
+def _adam_step(opt, params, state, problem):
     value, grad = jax.value_and_grad(_loss)(params, problem)
     updates, state = opt.update(grad, state, params)
     return optax.apply_updates(params, updates), state, value
