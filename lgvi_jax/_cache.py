@@ -13,14 +13,27 @@ processes safely: with a size limit JAX reads and writes entries under a file lo
 (``filelock``); the limit, 2 GiB, evicts the least recently used programs. A folder that
 cannot be created leaves the cache off (the run is only slower). The key of an entry covers
 the program, the JAX/XLA versions and the ``XLA_FLAGS``, so a changed setting recompiles.
+
+JAX's cache starts from the lowered program, so a run still pays for tracing the Python
+that builds it (about as long as loading the compiled program from the cache is short: a
+sweep's batched rollout traces in 1-2 s). :func:`call` also keeps the **traced** programs
+of the batched rollouts, as :mod:`jax.export` serialisations in the ``traces`` subfolder,
+keyed by everything the trace depends on (the package's source, the JAX version, the
+static part of the arguments and the dynamic part's shapes, dtypes and devices): a repeated
+run deserialises the program (milliseconds) instead of tracing it again.
 """
 
 from __future__ import annotations
 
+import functools
+import hashlib
 import os
+import re
+from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
 
-__all__ = ["cache_dir", "enable"]
+__all__ = ["cache_dir", "call", "enable"]
 
 #: Environment variable naming the cache folder (``off`` to disable).
 ENV = "LGVI_JAX_CACHE_DIR"
@@ -29,6 +42,12 @@ MAX_SIZE = 2 * 1024**3
 #: Programs that compile faster than this are not stored (their entry would cost more to
 #: read and write than to recompile).
 MIN_COMPILE_S = 0.2
+#: Size limit of the traced programs (``traces`` subfolder), bytes; the least recently
+#: written are removed beyond it.
+MAX_TRACES_SIZE = 256 * 1024**2
+
+_traces: Path | None = None  # set by enable(); None: call() runs the function as it is
+_loaded: dict[str, Callable] = {}  # key -> jitted call of the exported program
 
 
 def cache_dir() -> Path | None:
@@ -61,4 +80,104 @@ def enable() -> Path | None:
     jax.config.update("jax_compilation_cache_max_size", MAX_SIZE)
     jax.config.update("jax_persistent_cache_min_compile_time_secs", MIN_COMPILE_S)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    global _traces
+    _traces = path / "traces"
     return path
+
+
+@functools.cache
+def _source_digest() -> str:
+    """A digest of the package's source files (a traced program depends on all of them)."""
+    h = hashlib.sha256()
+    root = Path(__file__).parent
+    for f in sorted(root.rglob("*.py")):
+        h.update(str(f.relative_to(root)).encode())
+        h.update(f.read_bytes())
+    return h.hexdigest()
+
+
+_ADDRESS = re.compile(r" at 0x[0-9a-fA-F]+")
+
+
+def _key(name: str, static: Any, leaves: Sequence) -> str | None:
+    """The traced program's key, or ``None`` when the static part has no faithful text
+    (an object printed by its address: a function, a custom object)."""
+    import jax
+
+    s_leaves, s_def = jax.tree.flatten(static)
+    text = repr((str(s_def), s_leaves))
+    if _ADDRESS.search(text):
+        return None
+    avals = [(tuple(x.shape), str(x.dtype), str(getattr(x, "sharding", None)))
+             for x in leaves]
+    parts = (name, _source_digest(), jax.__version__, jax.default_backend(),
+             bool(jax.config.jax_enable_x64), text, repr(avals))
+    return hashlib.sha256(repr(parts).encode()).hexdigest()[:40]
+
+
+def _prune(folder: Path) -> None:
+    try:
+        files = sorted(folder.glob("*.jaxexport"), key=lambda f: f.stat().st_mtime)
+        total = sum(f.stat().st_size for f in files)
+        for f in files:
+            if total <= MAX_TRACES_SIZE:
+                break
+            total -= f.stat().st_size
+            f.unlink(missing_ok=True)
+    except OSError:
+        pass
+
+
+def call(name: str, fn: Callable, *args: Any) -> Any:
+    """``fn(*args)`` through the traced-program cache when :func:`enable` turned it on.
+
+    ``fn`` is a JAX-traceable function of pytrees; their array leaves are the program's
+    inputs, everything else (numbers, strings, the structure) is static and part of the key
+    with ``name`` (which program). On a miss the program is traced once with
+    :func:`jax.export.export`, stored (atomically, so concurrent runs share the folder) and
+    run from that export; on a hit it is deserialised. The result equals ``fn(*args)``: it
+    is the same program. Without the cache, or for a static part that cannot be keyed, it is
+    ``fn(*args)``."""
+    if _traces is None:
+        return fn(*args)
+    import equinox as eqx
+    import jax
+
+    if jax.process_count() > 1:  # a multi-process program: traced by every process
+        return fn(*args)
+
+    dynamic, static = eqx.partition(args, eqx.is_array)
+    leaves, treedef = jax.tree.flatten(dynamic)
+    key = _key(name, static, leaves)
+    if key is None:
+        return fn(*args)
+    if key not in _loaded:
+        def flat(*flat_leaves):
+            return fn(*eqx.combine(jax.tree.unflatten(treedef, flat_leaves), static))
+
+        _loaded[key] = _load_or_export(key, flat, leaves)
+    return _loaded[key](*leaves)
+
+
+def _load_or_export(key: str, flat: Callable, leaves: Sequence) -> Callable:
+    import jax
+    from jax import export
+
+    path = _traces / f"{key}.jaxexport"
+    try:
+        exported = export.deserialize(bytearray(path.read_bytes()))
+    except Exception:  # missing, damaged or from an incompatible version: trace again
+        try:
+            exported = export.export(jax.jit(flat))(*leaves)
+            data = exported.serialize()
+        except Exception:  # not exportable (a custom call without a stable ABI, ...)
+            return jax.jit(flat)
+        try:
+            from ._io import atomic_write_bytes
+
+            _traces.mkdir(parents=True, exist_ok=True)
+            atomic_write_bytes(path, data)
+            _prune(_traces)
+        except OSError:
+            pass
+    return jax.jit(exported.call)

@@ -284,9 +284,11 @@ def initial_conditions(model, state0, n: int, perturb: float, seed: int,
     """Initial conditions ``start, ..., start + n - 1`` of a sweep, batched (leading axis
     ``n``). Condition ``i`` depends only on ``(seed, i)`` (``jax.random.fold_in``), so any
     chunking of the index range gives the same states."""
-    indices = jnp.arange(start, start + n, dtype=jnp.uint32)
-    return _initial_conditions(model, state0, jnp.float64(perturb), jnp.uint32(seed % 2**32),
-                               indices)
+    from . import _cache
+
+    indices = np.arange(start, start + n, dtype=np.uint32)
+    return _cache.call("sweep.initial_conditions", _initial_conditions, model, state0,
+                       np.float64(perturb), np.uint32(seed % 2**32), indices)
 
 
 # ---------------------------------------------------------------------------------------
@@ -481,9 +483,12 @@ def run_batch(model, method, states, dt: float, n_steps: int, *, sample_every: i
     The batch is split over ``devices`` (default: all of ``jax.devices()`` that divide
     ``B``, else one). ``dt``, ``n_steps`` and ``sample_every`` are run-time values.
     """
+    from . import _cache
+
     fn, args = batch_arguments(model, method, states, dt, n_steps, sample_every=sample_every,
                                devices=devices)
-    return {k: np.asarray(v) for k, v in fn(*args).items()}
+    out = _cache.call("sweep.run_batch", fn, *args)  # traced once per cache (CLI)
+    return {k: np.asarray(v) for k, v in out.items()}
 
 
 # ---------------------------------------------------------------------------------------
@@ -1033,5 +1038,7 @@ def _plot(path: Path, config: SweepConfig, results) -> None:
     ax.set_title(f"{config.system}: energy error over {config.n} initial conditions\n"
                  f"(perturbation {config.perturb:g}, t = {config.t_final:g})", fontsize=10)
     ax.grid(alpha=0.3)
-    fig.tight_layout()
+    # fixed margins for the 2-line title and the 3-line tick labels (tight_layout measured
+    # every text box: 0.2 s)
+    fig.subplots_adjust(left=0.9 / fig.get_figwidth(), right=0.98, bottom=0.17, top=0.86)
     atomic_write(path, lambda fh: fig.savefig(fh, format="png", dpi=120))

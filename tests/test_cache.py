@@ -78,3 +78,73 @@ def test_repeated_and_concurrent_runs_share_the_cache(tmp_path):
         data = np.load(tmp_path / f"{name}.npz")
         for key in ("q", "p", "energy"):
             np.testing.assert_array_equal(data[key], ref[key])
+
+
+# ---------------------------------------------------------------------------------------
+# The traced-program cache (lgvi_jax._cache.call: jax.export serialisations)
+# ---------------------------------------------------------------------------------------
+
+
+@pytest.fixture
+def traces(tmp_path, monkeypatch):
+    folder = tmp_path / "traces"
+    monkeypatch.setattr(_cache, "_traces", folder)
+    monkeypatch.setattr(_cache, "_loaded", {})
+    return folder
+
+
+def _batch(method_name="hamel"):
+    from lgvi_jax import sweep
+    from lgvi_jax.scenes import get_scene
+
+    model, state0 = get_scene("free-rigid-body").build({})
+    method = sweep.sweep_method("free-rigid-body", model, method_name)
+    states = sweep.initial_conditions(model, state0, 4, 0.1, 3)
+    return sweep.batch_arguments(model, method, states, 0.01, 50)
+
+
+def _assert_same(out, ref):
+    assert set(out) == set(ref)
+    for k in ref:
+        np.testing.assert_array_equal(np.asarray(out[k]), np.asarray(ref[k]), err_msg=k)
+
+
+def test_traced_program_is_stored_reloaded_and_bit_identical(traces, monkeypatch):
+    """A miss stores one export; a later process (a cleared memo) deserialises it without
+    tracing; a damaged entry is traced again; every result equals the direct call's to the
+    last bit (the scalar engine's batched rollout: the sweep's program)."""
+    from jax import export
+
+    fn, args = _batch()
+    ref = fn(*args)
+    _assert_same(_cache.call("test", fn, *args), ref)
+    stored = sorted(traces.glob("*.jaxexport"))
+    assert len(stored) == 1
+
+    monkeypatch.setattr(_cache, "_loaded", {})
+    with monkeypatch.context() as m:
+        m.setattr(export, "export", lambda *a, **k: pytest.fail("traced again on a hit"))
+        _assert_same(_cache.call("test", fn, *args), ref)
+
+    stored[0].write_bytes(b"not an export")
+    monkeypatch.setattr(_cache, "_loaded", {})
+    _assert_same(_cache.call("test", fn, *args), ref)
+    assert sorted(traces.glob("*.jaxexport")) == stored
+    assert stored[0].stat().st_size > 1000  # rewritten whole
+
+    # another method (static part) or another batch size (shapes) is another program
+    fn2, args2 = _batch("lgvi")
+    _assert_same(_cache.call("test", fn2, *args2), fn2(*args2))
+    assert len(list(traces.glob("*.jaxexport"))) == 2
+
+
+def test_static_parts_without_a_faithful_key_bypass_the_cache(traces):
+    import jax.numpy as jnp
+
+    x = jnp.arange(3.0)
+    out = _cache.call("test", lambda f, v: f(v), lambda v: 2 * v, x)  # a function: no key
+    np.testing.assert_array_equal(out, 2 * x)
+    assert not traces.exists() or not list(traces.glob("*.jaxexport"))
+    out = _cache.call("test", lambda v, k: v * k, x, 3.0)  # numbers are keyed
+    np.testing.assert_array_equal(out, 3 * x)
+    assert len(list(traces.glob("*.jaxexport"))) == 1
