@@ -62,7 +62,7 @@ import numpy as np
 import optax
 import scipy.optimize
 
-from . import so3
+from . import _cache, so3
 from .inertia import centroidal_inertia, inertia_from_params, params_from_inertia, pivot_inertia
 from .integrators import RIGID_METHODS, AbstractIntegrator
 from .models import CarPendulum
@@ -471,6 +471,17 @@ def _residuals_and_jacobian(params, problem):
     return r, J
 
 
+def _gradient(params, problem):
+    """:func:`_value_and_grad`, traced once per cache (the command line's, ``_cache``)."""
+    return _cache.call("identify.value_and_grad", _value_and_grad, params, problem)
+
+
+def _jacobian(params, problem):
+    """:func:`_residuals_and_jacobian`, traced once per cache (as :func:`_gradient`)."""
+    return _cache.call("identify.residuals_and_jacobian", _residuals_and_jacobian, params,
+                       problem)
+
+
 class _Evaluator:
     """The loss and its gradient at flat parameters through the one compiled
     :func:`_value_and_grad`, remembering the last point (a line search asks for the value
@@ -482,7 +493,7 @@ class _Evaluator:
 
     def __call__(self, x: np.ndarray) -> tuple[float, np.ndarray]:
         if self.x is None or not np.array_equal(x, self.x):
-            v, g = _value_and_grad(self.unravel(jnp.asarray(x)), self.problem)
+            v, g = _gradient(self.unravel(jnp.asarray(x)), self.problem)
             g = np.asarray(jax.flatten_util.ravel_pytree(g)[0])
             self.x, self.value, self.grad = np.array(x), float(v), g
         return self.value, self.grad
@@ -606,7 +617,7 @@ class _LevenbergMarquardt:
     def step(self, params, state: _LMState, problem):
         flat, unravel = jax.flatten_util.ravel_pytree(params)
         if state.r is None:
-            state.r, state.J = (np.asarray(a) for a in _residuals_and_jacobian(params, problem))
+            state.r, state.J = (np.asarray(a) for a in _jacobian(params, problem))
         r, J, lam = state.r, state.J, state.damping
         value = float(np.sum(r**2))
         if not (math.isfinite(value) and np.all(np.isfinite(J))):
@@ -618,8 +629,7 @@ class _LevenbergMarquardt:
         except np.linalg.LinAlgError:
             delta = -np.linalg.lstsq(A, J.T @ r, rcond=None)[0]
         trial = np.asarray(flat) + delta
-        r_new, J_new = (np.asarray(a) for a in
-                        _residuals_and_jacobian(unravel(jnp.asarray(trial)), problem))
+        r_new, J_new = (np.asarray(a) for a in _jacobian(unravel(jnp.asarray(trial)), problem))
         value_new = float(np.sum(r_new**2))
         new = _LMState(lam)
         if math.isfinite(value_new) and value_new < value:
@@ -636,9 +646,9 @@ def _loss_value(optimizer: str, params, problem) -> float:
     """The loss through the program the optimiser compiles anyway (no extra compilation):
     the gradient's for L-BFGS, the residuals' and Jacobian's for Gauss–Newton."""
     if optimizer == "lbfgs":
-        return float(_value_and_grad(params, problem)[0])
+        return float(_gradient(params, problem)[0])
     if optimizer == "gauss-newton":
-        return float(jnp.sum(_residuals_and_jacobian(params, problem)[0] ** 2))
+        return float(jnp.sum(_jacobian(params, problem)[0] ** 2))
     return float(_loss_jit(params, problem))
 
 
