@@ -31,7 +31,14 @@ Four parts (``lgvi-jax bench --out DIR``; writes ``bench.json`` and ``bench.md``
    autodiff engine on arrays) recovering the inertia from noise-free synthetic
    observations (every 0.05 s over 5 s from the independent reference) at h = 5e-3: wall
    time and the relative error of the recovered inertia.
-4. **Memory of long runs.** ``lgvi-jax simulate`` for 10^6 steps with ``--save-every
+4. **A sweep end to end** (``--parts sweep``, not in the default parts: it spawns fresh
+   processes for a few minutes). ``lgvi-jax sweep SYSTEM --method hamel --dt 5e-3
+   --t-final T --n BATCH --perturb 0.01 --seed 0`` for each system, a fresh process each:
+   once *cold* (an empty cache folder) and :data:`SWEEP_WARM_RUNS` times *warm* (the same
+   folder: compiled and traced programs reused), wall clock of the whole command; beside
+   it, for the car-pendulum, the Numba Hamel baseline's compiled batched run of the same
+   work with the same per-step diagnostics on all cores (the issue's yardstick).
+5. **Memory of long runs.** ``lgvi-jax simulate`` for 10^6 steps with ``--save-every
    1000`` (and 10^5 for comparison) in child processes: their peak resident memory.
 
 Times are the best of up to ``repeats`` runs after compilation, fewer when the runs of a
@@ -73,7 +80,11 @@ METHODS = ("lgvi", "hamel", "hamel-cayley", "hamel-exact", "lgvi@4", "lgvi@6", "
 #: they resolve to (on the heavy top ``auto`` is ``scalar``).
 ENGINES = ("auto", "scalar")
 ENGINE_CHOICES = ("auto", "general", "scalar", "fused")
-PARTS = ("throughput", "gradient", "fit")
+PARTS = ("throughput", "gradient", "fit", "sweep")
+#: The parts run unless ``--parts`` names others (``sweep`` spawns processes for minutes).
+DEFAULT_PARTS = ("throughput", "gradient", "fit")
+#: Warm repetitions of the end-to-end sweep (``sweep`` part).
+SWEEP_WARM_RUNS = 3
 #: ``--quick``: a smoke test of every part but the fit (whose Jacobian program compiles for
 #: ~8 s), on fewer methods, the default engines only, and the gradient on arrays only (the
 #: scalar engine's gradient compiles for ~20 s).
@@ -315,6 +326,46 @@ def _fit(quick: bool, log) -> dict:
     return out
 
 
+def _sweep_end_to_end(systems, steps: int, batch: int, nb, log) -> list[dict]:
+    """Wall clock of ``lgvi-jax sweep`` in fresh processes, cold and warm (module
+    docstring, part 4), and the Numba Hamel batched run of the same work."""
+    rows = []
+    for system in systems:
+        with tempfile.TemporaryDirectory() as tmp:
+            env = {**os.environ, "LGVI_JAX_CACHE_DIR": str(Path(tmp) / "cache")}
+            walls = []
+            for k in range(1 + SWEEP_WARM_RUNS):
+                args = [sys.executable, "-m", "lgvi_jax.cli", "sweep", system, "--method",
+                        "hamel", "--dt", str(DT), "--t-final", f"{steps * DT:g}", "--n",
+                        str(batch), "--perturb", str(PERTURB), "--seed", str(SEED),
+                        "--out", str(Path(tmp) / f"out{k}"), "--json"]
+                start = time.perf_counter()
+                proc = subprocess.run(args, capture_output=True, text=True, env=env,
+                                      check=False)
+                walls.append(time.perf_counter() - start)
+                if proc.returncode != 0:
+                    raise RuntimeError(f"sweep {system} failed: {proc.stderr[-2000:]}")
+            summary = json.loads((Path(tmp) / "out0" / "summary.json").read_text())
+        row = {"system": system, "method": "hamel", "n": batch, "steps": steps,
+               "engine": engine_name(sweep_method(system, lj.scenes.get_scene(system)
+                                                  .build()[0], "hamel")),
+               "cold_s": walls[0], "warm_s": walls[1:],
+               "energy_error_max": summary["rows"][0]["energy_error_max_max"],
+               "numba_run_s": None}
+        if nb is not None and system == "car-pendulum":
+            model, s0 = lj.scenes.get_scene(system).build()
+            arrays = _numpy_states(initial_conditions(model, s0, batch, PERTURB, SEED))
+            params = nb.params_from_model(model)
+            row["numba_run_s"], _, _ = _timed(
+                lambda a=arrays, p=params: nb.sweep_metrics("hamel", *a, DT, steps, p), 2)
+        rows.append(row)
+        log(f"  {system}: cold {walls[0]:.2f} s, warm "
+            + ", ".join(f"{w:.2f}" for w in walls[1:]) + " s"
+            + (f"; Numba's compiled run {row['numba_run_s']:.2f} s" if row["numba_run_s"]
+               else ""))
+    return rows
+
+
 def _long_run_memory(n_steps: int, log) -> dict:
     """Peak resident memory of ``lgvi-jax simulate`` over ``n_steps`` (child process)."""
     with tempfile.TemporaryDirectory() as tmp:
@@ -395,7 +446,7 @@ def run(out_dir: Path | str, quick: bool = False, log: Callable = print, *,
     repeats = 2 if quick else 3
     methods = tuple(methods or (QUICK_METHODS if quick else METHODS))
     engines = tuple(engines or (QUICK_ENGINES if quick else ENGINES))
-    parts = tuple(parts or (QUICK_PARTS if quick else PARTS))
+    parts = tuple(parts or (QUICK_PARTS if quick else DEFAULT_PARTS))
     systems = tuple(systems)
     env = _environment()
     results: dict = {"quick": quick, "dt": DT, "steps": steps, "batch": batch,
@@ -418,6 +469,11 @@ def run(out_dir: Path | str, quick: bool = False, log: Callable = print, *,
     if "fit" in parts:
         log("fit: the inertia from noise-free synthetic observations")
         results["fit"] = _fit(quick, log)
+    if "sweep" in parts:
+        nb, info = _load_numba(("hamel",), log) if "car-pendulum" in systems else (None, None)
+        results["numba"] = results["numba"] or info
+        log(f"sweep end to end: hamel, {batch} trajectories x {steps} steps, fresh processes")
+        results["sweep"] = _sweep_end_to_end(systems, steps, batch, nb, log)
     results["process_peak_rss_mb"] = _rss_mb()
     if long_run:
         results["long_run"] = [_long_run_memory(n, log)
@@ -529,6 +585,32 @@ def _markdown(r: dict) -> str:
             f"| {f['wall_s']:.1f} | {f['compile_s']:.1f} | {f['iterations']} | {f['stopped']} "
             f"| {f['rel_error_J_c']:.3%} | {f['rel_error_J']:.3%} |",
         ]
+    if r.get("sweep"):
+        rows = r["sweep"]
+        ref = next((x["numba_run_s"] for x in rows if x["numba_run_s"]), None)
+        car = next((x for x in rows if x["system"] == "car-pendulum"), None)
+        lines += [
+            "", "## A sweep end to end", "",
+            f"`lgvi-jax sweep SYSTEM --method hamel --dt {r['dt']:g} --t-final "
+            f"{r['steps'] * r['dt']:g} --n {r['batch']} --perturb {PERTURB:g} --seed {SEED}`, "
+            "metrics every step, a fresh process each: *cold* with an empty cache folder "
+            "(`LGVI_JAX_CACHE_DIR`), *warm* the same command again (compiled and traced "
+            "programs reused). Numba: the Hamel baseline's compiled batched run of the same "
+            "work with the same per-step diagnostics, all cores (run time only, after its "
+            "compilation). Ratio = Numba's run / our wall clock (≥ 1: we are faster).",
+            "",
+            "| system | engine | cold (s) | warm (s) | Numba's run (s) | ratio cold, best warm "
+            "| vs the car-pendulum (cold, best warm) |",
+            "|---|---|---|---|---|---|---|",
+        ]
+        for x in rows:
+            best = min(x["warm_s"])
+            ratio = (f"{ref / x['cold_s']:.2f}, {ref / best:.2f}" if ref else "n/a")
+            rel = (f"{x['cold_s'] / car['cold_s']:.2f}, {best / min(car['warm_s']):.2f}"
+                   if car else "n/a")
+            lines.append(f"| {x['system']} | {x['engine']} | {x['cold_s']:.2f} | "
+                         + ", ".join(f"{w:.2f}" for w in x["warm_s"])
+                         + f" | {_g(ref, '.2f')} | {ratio} | {rel} |")
     if r.get("long_run"):
         lines += ["", "## Memory of long runs", "",
                   "`lgvi-jax simulate car-pendulum --method lgvi --save-every 1000`, child "

@@ -623,7 +623,9 @@ def build_parser() -> argparse.ArgumentParser:
                     "fused; default auto,scalar: the default and the autodiff engine on "
                     "scalars, one row per engine they resolve to)")
     be.add_argument("--parts", default=None, metavar="P[,P...]",
-                    help="throughput, gradient, fit (default all three)")
+                    help="throughput, gradient, fit, sweep (default the first three; "
+                    "sweep: a hamel sweep end to end in fresh processes, cold "
+                    "and warm cache, beside Numba's compiled run)")
     be.add_argument("--no-long-run", action="store_true",
                     help="skip the 10^6-step bounded-memory run")
     be.add_argument("--devices", default="auto", metavar="auto|N",
