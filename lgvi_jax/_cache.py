@@ -15,12 +15,12 @@ cannot be created leaves the cache off (the run is only slower). The key of an e
 the program, the JAX/XLA versions and the ``XLA_FLAGS``, so a changed setting recompiles.
 
 JAX's cache starts from the lowered program, so a run still pays for tracing the Python
-that builds it (about as long as loading the compiled program from the cache is short: a
-sweep's batched rollout traces in 1-2 s). :func:`call` also keeps the **traced** programs
-of the batched rollouts, as :mod:`jax.export` serialisations in the ``traces`` subfolder,
-keyed by everything the trace depends on (the package's source, the JAX version, the
-static part of the arguments and the dynamic part's shapes, dtypes and devices): a repeated
-run deserialises the program (milliseconds) instead of tracing it again.
+that builds it (a sweep's batched rollout: 1-2 s). :func:`call` also keeps the **traced**
+programs (the sweep's rollout and initial conditions, the fit's derivatives) as
+:mod:`jax.export` serialisations in the ``traces`` subfolder, keyed by everything a trace
+depends on: the package's source, the versions of JAX, jaxlib, Equinox and NumPy, the
+static part of the arguments and the shapes, dtypes and devices of the dynamic part. A
+repeated run deserialises the program (milliseconds) instead of tracing it again.
 """
 
 from __future__ import annotations
@@ -96,6 +96,17 @@ def _source_digest() -> str:
     return h.hexdigest()
 
 
+@functools.cache
+def _versions() -> tuple[str, ...]:
+    """Versions of the libraries a trace goes through."""
+    import equinox
+    import jax
+    import jaxlib
+    import numpy
+
+    return (jax.__version__, jaxlib.__version__, equinox.__version__, numpy.__version__)
+
+
 _ADDRESS = re.compile(r" at 0x[0-9a-fA-F]+")
 
 
@@ -110,7 +121,7 @@ def _key(name: str, static: Any, leaves: Sequence) -> str | None:
         return None
     avals = [(tuple(x.shape), str(x.dtype), str(getattr(x, "sharding", None)))
              for x in leaves]
-    parts = (name, _source_digest(), jax.__version__, jax.default_backend(),
+    parts = (name, _source_digest(), _versions(), jax.default_backend(),
              bool(jax.config.jax_enable_x64), text, repr(avals))
     return hashlib.sha256(repr(parts).encode()).hexdigest()[:40]
 
