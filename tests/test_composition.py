@@ -13,6 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import SHARED_ROLLOUT_STEPS
 from scipy.linalg import expm
 
 import lgvi_jax as L
@@ -378,7 +379,9 @@ def test_momentum_maps_over_1e4_composed_steps():
     and R stays on SO(3)."""
     model = moving_scene()
     s0 = model.default_state()
-    base = L.simulate(model, LGVI(), s0, 0.02, 10_000, save_every=100)
+    # The base method's run saves every state: the compiled rollout tests/test_lie.py runs
+    # (tests/conftest.py: SHARED_ROLLOUT_STEPS), loaded rather than compiled again.
+    base = L.simulate(model, LGVI(), s0, 0.02, SHARED_ROLLOUT_STEPS)
     dp_base, dlz_base = _drifts(base)
     for order in (4, 8):
         method = resolve_method(f"lgvi@{order}", RIGID_METHODS)
