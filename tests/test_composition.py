@@ -5,6 +5,7 @@ energy, reversibility, warm starts, and the ``METHOD@SPEC`` syntax."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 
@@ -13,6 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import SHARED_ROLLOUT_STEPS
 from scipy.linalg import expm
 
 import lgvi_jax as L
@@ -342,7 +344,14 @@ def test_symplectic_in_canonical_coordinates():
 
     model = moving_scene()
     s0 = model.default_state()
-    method = resolve_method("lgvi@triple-jump", RIGID_METHODS)
+    # The sub-steps solved on arrays: the same discrete equations as the default scalar
+    # engine (tests/test_scalarize.py: the same trajectories to round-off), whose tangent
+    # rule, the one custom_jvp rule reverse mode also transposes, is checked against
+    # finite differences in tests/test_lie.py (lgvi@4); the scalar program's forward-mode
+    # Jacobian compiled ~2x longer (13 s) for the same symplecticity.
+    method = dataclasses.replace(resolve_method("lgvi@triple-jump", RIGID_METHODS),
+                                 scalar=False)
+    assert not method._sub_step_method().newton.scalar
     R_ref = s0.R
 
     def to_x(s):
@@ -378,7 +387,9 @@ def test_momentum_maps_over_1e4_composed_steps():
     and R stays on SO(3)."""
     model = moving_scene()
     s0 = model.default_state()
-    base = L.simulate(model, LGVI(), s0, 0.02, 10_000, save_every=100)
+    # The base method's run saves every state: the compiled rollout tests/test_lie.py runs
+    # (tests/conftest.py: SHARED_ROLLOUT_STEPS), loaded rather than compiled again.
+    base = L.simulate(model, LGVI(), s0, 0.02, SHARED_ROLLOUT_STEPS)
     dp_base, dlz_base = _drifts(base)
     for order in (4, 8):
         method = resolve_method(f"lgvi@{order}", RIGID_METHODS)

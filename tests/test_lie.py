@@ -6,6 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import SHARED_ROLLOUT_STEPS
 from scipy.linalg import expm
 from scipy.optimize import fsolve
 
@@ -47,13 +48,23 @@ def free_body():
                          omega0=(0.7, -1.1, 2.0))
 
 
+def long_run(model, method, state0, dt):
+    """10^4 steps of ``dt`` from ``state0``, every state saved: the compiled rollout of
+    :func:`long_runs` (for a car-pendulum and a method of ``VI``). ``n_steps`` and
+    ``save_every`` are compile-time constants of a rollout, ``dt``, the model's parameters
+    and the state are not: the other car-pendulum tests below that need a trajectory of a
+    VI method take the part they need of a run of this length, so that each method's
+    rollout is compiled once (tests/conftest.py: SHARED_ROLLOUT_STEPS; compiling is most
+    of these tests' time, 10^4 steps run in a fraction of a second)."""
+    return simulate(model, method, state0, dt, SHARED_ROLLOUT_STEPS)
+
+
 @pytest.fixture(scope="module")
 def long_runs():
     """10^4 steps of h = 5e-3 of the moving car-pendulum, every VI method."""
     model = moving_car()
     s0 = model.default_state()
-    return model, {name: simulate(model, RIGID_METHODS[name](), s0, 5e-3, 10_000)
-                   for name in VI}
+    return model, {name: long_run(model, RIGID_METHODS[name](), s0, 5e-3) for name in VI}
 
 
 # ------------------------------------------------------------------ paper's equations
@@ -142,16 +153,19 @@ def test_car_pendulum_invariants_over_1e4_steps(long_runs, name):
     assert float(traj.newton_mean) <= 4.0
 
 
-def test_hamel_angular_momentum_error_is_second_order():
+def test_hamel_angular_momentum_error_is_second_order(long_runs):
     """The paper's ``hamel`` violates the vertical angular momentum by O(h²): halving the
-    step divides its maximum error over a fixed horizon by 4."""
-    model = moving_car()
+    step divides its maximum error over a fixed horizon by 4. (The first 2 s of 10^4-step
+    runs, every step saved: h = 0.005 is the fixture's run, h = 0.01 the same compiled
+    rollout.)"""
+    model, runs = long_runs
     s0 = model.default_state()
     errors = []
     for h in (0.01, 0.005):
         n = round(2.0 / h)
-        traj = simulate(model, RIGID_METHODS["hamel"](), s0, h, n)
-        lz = np.asarray(traj.invariants["angular_momentum_z"])
+        traj = runs["hamel"] if h == 5e-3 else long_run(model, RIGID_METHODS["hamel"](), s0, h)
+        assert traj.ok, traj.message
+        lz = np.asarray(traj.invariants["angular_momentum_z"])[: n + 1]  # t in [0, 2]
         errors.append(np.max(np.abs(lz - lz[0])))
     # Measured ratio 3.99 (and 3.96 from h = 0.02 to 0.01).
     assert errors[0] / errors[1] == pytest.approx(4.0, rel=0.1)
@@ -160,11 +174,22 @@ def test_hamel_angular_momentum_error_is_second_order():
 @pytest.mark.parametrize("name", NOETHER)
 def test_free_body_and_heavy_top_momentum_maps(name):
     """Free body: all three components of the spatial angular momentum ``Rμ``; heavy top:
-    its vertical component. Conserved to round-off by the Noether methods."""
+    its vertical component. Conserved to round-off by the Noether methods. The free body
+    is the top without gravity (g = 0: no potential, so the body of :func:`free_body`,
+    whose inertia about the pivot is ``J``), which runs through the top's compiled
+    rollout; the class FreeRigidBody itself: tests/test_rigid_models.py (its equations),
+    the step-by-step tests above, tests/test_blindspots.py (lgvi's momentum over a sweep)."""
     method = RIGID_METHODS[name]()
-    body = free_body()
-    traj = simulate(body, method, body.default_state(), 0.02, 2000, save_every=10)
-    pi = np.asarray(traj.invariants["angular_momentum"])
+    fb = free_body()
+    body = HeavyTop(J=fb.J, g=0.0, R0=fb.R0, omega0=fb.omega0)
+    # The same Lagrangian (½ωᵀJω, potential m g e3ᵀRρ_c = 0), so the same state and
+    # discrete equations: the initial states and energies are the free body's.
+    s0 = body.default_state()
+    for a, b in zip(jax.tree.leaves(s0), jax.tree.leaves(fb.default_state()), strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert float(body.energy(s0)) == float(fb.energy(s0))
+    traj = simulate(body, method, s0, 0.02, 2000, save_every=10)
+    pi = np.asarray(fb.spatial_angular_momentum(traj.state))
     # one ulp per step, linearly over 2000 steps: 4.4e-13 relative; measured <= 1.5e-14
     # (both compilations), bound 1e-12
     assert np.max(np.abs(pi - pi[0])) <= 1e-12 * np.linalg.norm(pi[0])
@@ -188,16 +213,17 @@ def test_rk4_drifts_off_so3_and_momentum():
 
 
 @pytest.mark.parametrize("name", VI)
-def test_time_reversibility(name):
-    """N steps with h, then N with −h, return to the start within 1e-11 (symmetric
-    methods)."""
-    model = moving_car()
+def test_time_reversibility(long_runs, name):
+    """N = 400 steps with h, then N with −h, return to the start within 1e-11 (symmetric
+    methods). (The forward steps are the first 400 of the fixture's run; the backward
+    ones, the first 400 of a run with −h through the same compiled rollout.)"""
+    model, runs = long_runs
     method = RIGID_METHODS[name]()
     s0 = model.default_state()
-    fwd = simulate(model, method, s0, 5e-3, 400, save_every=400)
-    end = jax.tree.map(lambda x: x[-1], fwd.state)
-    back = simulate(model, method, end, -5e-3, 400, save_every=400)
-    start = jax.tree.map(lambda x: x[-1], back.state)
+    end = jax.tree.map(lambda x: x[400], runs[name].state)
+    back = long_run(model, method, end, -5e-3)
+    assert back.ok, back.message
+    start = jax.tree.map(lambda x: x[400], back.state)
     for a, b in zip(jax.tree.leaves(start), jax.tree.leaves(s0), strict=True):
         # 800 solves each exact to ~1e-12 (1 + |ξ|) h ~ 3e-14: 2.4e-11 linearly, far less
         # as a random walk; measured <= 2.1e-13 over both compilations (ratio 0.02)
@@ -395,21 +421,26 @@ def test_hamel_options_validated():
 
 
 @pytest.mark.parametrize("name", ["lgvi", "hamel-exact"])
-def test_mass_matrix_chord_gives_the_same_solutions(name):
+def test_mass_matrix_chord_gives_the_same_solutions(long_runs, name):
     """``chord_matrix="mass"`` (the continuous Legendre matrix as the chord matrix, no
     Jacobian of G in the chord phase) solves the same discrete equations: the same states
     as the default to round-off over 2000 steps of the moving cart, the momentum maps as
-    well conserved, with more but cheaper iterations."""
-    model = moving_car()
+    well conserved, with more but cheaper iterations. (The default's 2000 steps: the first
+    2000 of a run through the compiled rollout of the fixture.)"""
+    model, _ = long_runs
     s0 = model.default_state()
     default = RIGID_METHODS[name]()
     mass = (LGVI(chord_matrix="mass") if name == "lgvi"
             else HamelVI(map="exp", variation="exact", chord_matrix="mass"))
     assert mass.chord_matrix == "mass" and mass.name == default.name
-    runs = [simulate(model, m, s0, 0.01, 2000, save_every=100) for m in (default, mass)]
+    full = long_run(model, default, s0, 0.01)
+    runs = [full, simulate(model, mass, s0, 0.01, 2000, save_every=100)]
     for traj in runs:
         assert traj.ok, traj.message
-    for x, y in zip(jax.tree.leaves(runs[0].state), jax.tree.leaves(runs[1].state),
+    # The default's states after 0, 100, ..., 2000 steps and its mean iterations over them.
+    default_states = jax.tree.map(lambda x: x[:2001:100], full.state)
+    default_newton_mean = float(np.sum(np.asarray(full.newton_steps)[:2001])) / 2000
+    for x, y in zip(jax.tree.leaves(default_states), jax.tree.leaves(runs[1].state),
                     strict=True):
         # Two solves of the same equations, each stopped at an update <= 1e-12 (1 + |ξ|)
         # (the mass chord's Broyden phase at a tenth of that): per step the increments
@@ -422,5 +453,5 @@ def test_mass_matrix_chord_gives_the_same_solutions(name):
     p = np.asarray(runs[1].invariants["momentum"])
     assert np.max(np.abs(p - p[0])) <= 1e-12
     assert np.max(np.abs(lz - lz[0])) <= 1e-11  # the bound of the default (10^4 steps)
-    assert float(runs[1].newton_mean) > float(runs[0].newton_mean)
+    assert float(runs[1].newton_mean) > default_newton_mean
     assert float(runs[1].newton_mean) <= 20  # no fallback to Newton on average

@@ -10,7 +10,19 @@ import pytest
 import lgvi_jax as lj
 
 pytest.importorskip("numba")
+from conftest import SHARED_ROLLOUT_STEPS
 from lgvi_jax.experiments import numba_lgvi as nb
+
+
+def _engine(model, method, s0, dt, n):
+    """The engine's first ``n`` steps of ``dt`` from ``s0``: ``(ok, states, invariants)``,
+    the ``n + 1`` states from the start and their invariants. Taken from a run of
+    SHARED_ROLLOUT_STEPS steps (every state saved): the compiled rollout that
+    tests/test_lie.py runs for every VI method (tests/conftest.py), loaded rather than
+    compiled again; ``ok``: every step of that run succeeded."""
+    traj = lj.simulate(model, method, s0, dt, SHARED_ROLLOUT_STEPS)
+    states, invariants = jax.tree.map(lambda x: x[: n + 1], (traj.state, traj.invariants))
+    return traj.ok, states, invariants
 
 
 @pytest.mark.parametrize("moving", [False, True])
@@ -22,12 +34,11 @@ def test_numba_lgvi_matches_the_engine(moving):
     params = nb.params_from_model(model)
     R, mu, q, p = (np.asarray(x) for x in (s0.R, s0.mu, s0.q, s0.p))
     R1, mu1, q1, p1, its, code = nb.rollout("lgvi", R, mu, q, p, 5e-3, 200, params)
-    traj = lj.simulate(model, lj.LGVI(), s0, 5e-3, 200)
-    assert code == 0 and traj.ok
+    ok, st, _ = _engine(model, lj.LGVI(), s0, 5e-3, 200)
+    assert code == 0 and ok
     # Both solve to |Δξ| <= 1e-12 (1 + |ξ|) per step, from different initial guesses, so
     # the end states agree to the accumulated solver tolerance, not to the last bit.
-    for ours, theirs in zip((traj.state.R, traj.state.mu, traj.state.q, traj.state.p),
-                            (R1, mu1, q1, p1), strict=True):
+    for ours, theirs in zip((st.R, st.mu, st.q, st.p), (R1, mu1, q1, p1), strict=True):
         np.testing.assert_allclose(theirs, np.asarray(ours)[-1], atol=1e-11)
     # The engine's solver: chord iterations (one Jacobian per step), ~4 per step.
     assert 2.0 <= its / 200 <= 5.0
@@ -39,11 +50,10 @@ def test_numba_lgvi_matches_the_engine(moving):
         np.testing.assert_array_equal(b, np.stack([a, a]))
     # A large step (θ = h|ξ| ≈ 0.2; the engine's compiled rollout is reused: dt is not
     # static): agreement to the accumulated solver tolerance.
-    traj = lj.simulate(model, lj.LGVI(), s0, 0.04, 200)
+    ok, st, _ = _engine(model, lj.LGVI(), s0, 0.04, 200)
     *theirs, its, code = nb.rollout("lgvi", R, mu, q, p, 0.04, 200, params)
-    assert traj.ok and code == 0
-    for a, b in zip((traj.state.R, traj.state.mu, traj.state.q, traj.state.p), theirs,
-                    strict=True):
+    assert ok and code == 0
+    for a, b in zip((st.R, st.mu, st.q, st.p), theirs, strict=True):
         np.testing.assert_allclose(b, np.asarray(a)[-1], rtol=0, atol=2e-10)
     # Failure is reported, not hidden: a non-finite state, and a step far too large for
     # Newton.
@@ -73,10 +83,9 @@ def test_numba_hamel_matches_the_engine(name):
               for s in (m.default_state() for m in models)]
     ends = []
     for model, (R, mu, q, p) in zip(models, starts, strict=True):
-        traj = lj.simulate(model, lj.RIGID_METHODS[name](), model.default_state(), 5e-3, 200)
-        assert traj.ok
-        ours = [np.asarray(x)[-1] for x in (traj.state.R, traj.state.mu, traj.state.q,
-                                            traj.state.p)]
+        ok, st, _ = _engine(model, lj.RIGID_METHODS[name](), model.default_state(), 5e-3, 200)
+        assert ok
+        ours = [np.asarray(x)[-1] for x in (st.R, st.mu, st.q, st.p)]
         ends.append(ours)
         *theirs, its, code = nb.rollout(name, R, mu, q, p, 5e-3, 200, params)
         # The engine's solver: chord iterations (one Jacobian per step), ~4 per step.
@@ -95,11 +104,10 @@ def test_numba_hamel_matches_the_engine(name):
     # same tolerance from different iterates; a single step agrees to ~1e-15, 200 steps
     # to the accumulated tolerance.
     model, (R, mu, q, p) = models[1], starts[1]
-    traj = lj.simulate(model, lj.RIGID_METHODS[name](), model.default_state(), 0.04, 200)
+    ok, st, _ = _engine(model, lj.RIGID_METHODS[name](), model.default_state(), 0.04, 200)
     *theirs, its, code = nb.rollout(name, R, mu, q, p, 0.04, 200, params)
-    assert traj.ok and code == 0
-    for a, b in zip((traj.state.R, traj.state.mu, traj.state.q, traj.state.p), theirs,
-                    strict=True):
+    assert ok and code == 0
+    for a, b in zip((st.R, st.mu, st.q, st.p), theirs, strict=True):
         np.testing.assert_allclose(b, np.asarray(a)[-1], rtol=0, atol=5e-11)
     # Failure is reported, not hidden: a non-finite state, and (exp map: Newton cannot
     # follow a rotation of ~250 rad per step; the Cayley map has a root there) a step far
@@ -152,12 +160,11 @@ def test_numba_diagnostics_equal_the_sweeps_on_the_same_states():
     from lgvi_jax.reference import moving_scene
 
     model = moving_scene()  # generic attitude, cart moving: every term of H is non-zero
-    traj = lj.simulate(model, lj.LGVI(), model.default_state(), 5e-3, 200)
-    assert traj.ok
-    st = traj.state
+    ok, st, inv = _engine(model, lj.LGVI(), model.default_state(), 5e-3, 200)
+    assert ok
     R, mu, q, p = (np.ascontiguousarray(np.asarray(x)) for x in (st.R, st.mu, st.q, st.p))
     params = nb.params_from_model(model)
-    E_jax = np.asarray(traj.invariants["energy"])
+    E_jax = np.asarray(inv["energy"])
     A, X = np.empty((3, 3)), np.empty(3)
     E_nb = np.array([nh.energy(R[k], mu[k], q[k], p[k], params, A, X) for k in range(len(R))])
     Lz_nb = np.array([nh.angular_momentum_z(R[k], mu[k], q[k], p[k]) for k in range(len(R))])
@@ -174,7 +181,7 @@ def test_numba_diagnostics_equal_the_sweeps_on_the_same_states():
     assert np.all(np.abs(E_nb - E_jax) <= dH), np.max(np.abs(E_nb - E_jax) / dH)
     # The vertical angular momentum: five products and four sums, |ΔL| <= 2 γ_5 L.
     dL = 2 * 5 * U * L / (1 - 5 * U)
-    Lz_jax = np.asarray(traj.invariants["angular_momentum_z"])
+    Lz_jax = np.asarray(inv["angular_momentum_z"])
     assert np.all(np.abs(Lz_nb - Lz_jax) <= dL), np.max(np.abs(Lz_nb - Lz_jax) / dL)
     # ‖RᵀR − I‖_F: each entry of RᵀR − I is three products, two sums and a subtraction of
     # numbers of size <= 1 (|R_ij| <= 1 to rounding), so within γ_4 ≈ 4u on each side;

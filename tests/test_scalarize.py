@@ -340,7 +340,11 @@ def test_compositions_solve_on_scalars_and_equal_the_array_engine():
 
 def test_sweep_engines_agree(tmp_path, capsys):
     """``--engine scalar`` (what ``auto`` uses without fused steps) and ``general`` give
-    the same metrics to round-off."""
+    the same metrics to round-off. (On the car-pendulum's ``hamel`` with 64 trajectories
+    in one chunk: the sweep then runs the two batched programs of the large-step test
+    above, whose step and step count are run-time values, so nothing is compiled again;
+    the scalar engine in a sweep of another system: tests/test_blindspots.py, the heavy
+    top under ``auto``.)"""
     import csv
 
     from lgvi_jax.cli import main
@@ -348,14 +352,16 @@ def test_sweep_engines_agree(tmp_path, capsys):
     rows = {}
     for engine in ("general", "scalar"):
         out = tmp_path / engine
-        assert main(["sweep", "heavy-top", "--method", "hamel-exact", "--dt", "0.01",
-                     "--t-final", "1", "--n", "4", "--chunk", "4", "--engine", engine,
+        assert main(["sweep", "car-pendulum", "--method", "hamel", "--dt", "0.01",
+                     "--t-final", "1", "--n", "64", "--chunk", "64", "--engine", engine,
                      "--out", str(out), "--json"]) == 0
         capsys.readouterr()
         with open(out / "trajectories.csv") as f:
             rows[engine] = list(csv.DictReader(f))
     for a, b in zip(rows["general"], rows["scalar"], strict=True):
         assert a["result"] == b["result"] == "0"
-        # relative energy errors ~1e-6 computed from states equal to ~1e-14
+        # relative energy errors ~1e-2 (hamel at h = 0.01) computed from states that agree
+        # to the Newton tolerance (both engines stop at updates <= 1e-12 (1 + |ξ|)):
+        # measured 9e-12 relative, bound 1e-6
         assert float(b["energy_error_max"]) == pytest.approx(float(a["energy_error_max"]),
                                                               rel=1e-6, abs=1e-13)

@@ -225,7 +225,19 @@ def _run(args, **kwargs):
                           **kwargs)
 
 
-def test_resume_after_kill_matches_uninterrupted_run(tmp_path):
+def _refused_in_process(args, capsys):
+    """The child's command line run in this process (``main``) where it is refused before
+    any work: the exit status and stderr. Without ``--devices 1``, which this process,
+    whose JAX already runs, would refuse first (the folder checks do not depend on it)."""
+    argv = args[3:]  # after "python -m lgvi_jax.cli"
+    i = argv.index("--devices")
+    del argv[i : i + 2]
+    capsys.readouterr()
+    code = main(argv)
+    return code, capsys.readouterr().err
+
+
+def test_resume_after_kill_matches_uninterrupted_run(tmp_path, capsys):
     killed, clean = tmp_path / "killed", tmp_path / "clean"
     chunks = killed / "chunks"
     # The child kills itself with SIGKILL (no chance to clean up) right after writing its
@@ -238,8 +250,9 @@ def test_resume_after_kill_matches_uninterrupted_run(tmp_path):
     assert not (killed / "trajectories.csv").exists()
 
     # Without --resume the folder is refused; with it, finished chunks are kept as they are.
-    again = _run(_sweep_args(killed))
-    assert again.returncode == 2 and "--resume" in again.stderr
+    # (The refusals run in this process: a child each cost ~3 s of importing JAX.)
+    code, err = _refused_in_process(_sweep_args(killed), capsys)
+    assert code == 2 and "--resume" in err
     resumed = _run(_sweep_args(killed, ["--resume"]))
     assert resumed.returncode == 0, resumed.stderr
     summary = json.loads(resumed.stdout)
@@ -253,8 +266,8 @@ def test_resume_after_kill_matches_uninterrupted_run(tmp_path):
     assert _csv_rows(killed / "trajectories.csv") == _csv_rows(clean / "trajectories.csv")
 
     # A resume with other arguments is refused, naming what differs.
-    other = _run(_sweep_args(killed, ["--resume", "--seed", "6"]))
-    assert other.returncode == 2 and "seed" in other.stderr
+    code, err = _refused_in_process(_sweep_args(killed, ["--resume", "--seed", "6"]), capsys)
+    assert code == 2 and "seed" in err
 
 
 @pytest.mark.parametrize(

@@ -30,10 +30,10 @@ print(json.dumps(out))
 """
 
 
-def _child(code: str, **env) -> subprocess.CompletedProcess:
+def _child(code: str, *args: str, **env) -> subprocess.CompletedProcess:
     full = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", _xla.OPT_OUT)}
     full.update(env)
-    return subprocess.run([sys.executable, "-c", code], env=full, capture_output=True,
+    return subprocess.run([sys.executable, "-c", code, *args], env=full, capture_output=True,
                           text=True, timeout=300, check=False)
 
 
@@ -66,45 +66,80 @@ def _flat(x):
 
 
 def test_user_options_are_kept():
-    code = "import os, lgvi_jax; print(os.environ['XLA_FLAGS'])"
+    """Four settings of ``XLA_FLAGS`` in one child (one import of JAX instead of four): the
+    first as the import of lgvi_jax applies it, the others through the function the import
+    calls (``_xla.configure``), each before JAX's backend starts (checked)."""
     mine = "--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=4096"
-    out = _child(code, XLA_FLAGS=mine)
-    assert out.returncode == 0, out.stderr
-    assert out.stdout.split() == [mine, _xla.EMITTER_FLAG]
     emitters = "--xla_cpu_use_fusion_emitters=true"
-    out = _child(code, XLA_FLAGS=emitters)
-    assert out.returncode == 0, out.stderr
-    assert out.stdout.split() == [emitters, _xla.flag()]
     other = "--xla_force_host_platform_device_count=2"
-    out = _child(code, XLA_FLAGS=other)
-    assert out.returncode == 0, out.stderr
-    assert out.stdout.split() == [other, *_xla.flags()]
     both = f"{mine} {emitters}"
-    out = _child(code, XLA_FLAGS=both)
+    cases = [mine, emitters, other, both]
+    code = ("import json, os, sys\n"
+            "import lgvi_jax\n"
+            "from lgvi_jax import _xla\n"
+            "out = [os.environ['XLA_FLAGS']]\n"
+            "for flags in json.loads(sys.argv[1])[1:]:\n"
+            "    os.environ['XLA_FLAGS'] = flags\n"
+            "    _xla.configure()\n"
+            "    out.append(os.environ['XLA_FLAGS'])\n"
+            "print(json.dumps({'flags': out, 'started': _xla._backend_started()}))\n")
+    out = _child(code, json.dumps(cases), XLA_FLAGS=mine)
     assert out.returncode == 0, out.stderr
-    assert out.stdout.strip() == both
+    result = json.loads(out.stdout)
+    assert result["started"] is False  # every case was configured as at import
+    got = [flags.split() for flags in result["flags"]]
+    assert got[0] == [mine, _xla.EMITTER_FLAG]
+    assert got[1] == [emitters, _xla.flag()]
+    assert got[2] == [other, *_xla.flags()]
+    assert result["flags"][3].strip() == both
 
 
 def test_too_late_warns_and_says_how_to_fix():
-    code = ("import warnings, jax, jax.numpy as jnp\n"
+    """The import after JAX's first computation warns; with the opt-out the same call
+    (``_xla.configure``, what the import runs) is silent. One child for both."""
+    code = ("import json, os, warnings, jax, jax.numpy as jnp\n"
             "jnp.zeros(1).block_until_ready()\n"
             "with warnings.catch_warnings(record=True) as w:\n"
             "    warnings.simplefilter('always')\n"
             "    import lgvi_jax\n"
-            "print([(x.category.__name__, str(x.message)) for x in w])\n")
+            "from lgvi_jax import _xla\n"
+            f"os.environ['{_xla.OPT_OUT}'] = '0'\n"
+            "with warnings.catch_warnings(record=True) as w2:\n"
+            "    warnings.simplefilter('always')\n"
+            "    _xla.configure()\n"
+            "print(json.dumps([[(x.category.__name__, str(x.message)) for x in ws]\n"
+            "                  for ws in (w, w2)]))\n")
     out = _child(code)
     assert out.returncode == 0, out.stderr
-    assert "XlaSettingWarning" in out.stdout and "before the first JAX computation" in out.stdout
-    silenced = _child(code, **{_xla.OPT_OUT: "0"})
-    assert silenced.returncode == 0 and "XlaSettingWarning" not in silenced.stdout
+    late, silenced = (json.dumps(ws) for ws in json.loads(out.stdout))
+    assert "XlaSettingWarning" in late and "before the first JAX computation" in late
+    assert "XlaSettingWarning" not in silenced
+
+
+@pytest.fixture(scope="module")
+def opted_out():
+    """``XLA_FLAGS`` in one child with the opt-out as each value below: the first at the
+    import of lgvi_jax, the second through the function the import calls."""
+    values = ["0", " 0 "]
+    code = ("import json, os, sys\n"
+            "import lgvi_jax\n"
+            "from lgvi_jax import _xla\n"
+            "out = [os.environ.get('XLA_FLAGS', '')]\n"
+            "os.environ.pop('XLA_FLAGS', None)\n"
+            f"os.environ['{_xla.OPT_OUT}'] = sys.argv[1]\n"
+            "_xla.configure()\n"
+            "out.append(os.environ.get('XLA_FLAGS', ''))\n"
+            "print(json.dumps(out))\n")
+    out = _child(code, values[1], **{_xla.OPT_OUT: values[0]})
+    assert out.returncode == 0, out.stderr
+    return dict(zip(values, json.loads(out.stdout), strict=True))
 
 
 @pytest.mark.parametrize("value", ["0", " 0 "])
-def test_opt_out(value):
-    out = _child("import os, lgvi_jax; print(os.environ.get('XLA_FLAGS', ''))",
-                 **{_xla.OPT_OUT: value})
-    assert out.returncode == 0 and "xla_backend_extra_options" not in out.stdout
-    assert "xla_cpu_use_fusion_emitters" not in out.stdout
+def test_opt_out(opted_out, value):
+    flags = opted_out[value]
+    assert "xla_backend_extra_options" not in flags
+    assert "xla_cpu_use_fusion_emitters" not in flags
 
 
 def test_alt_numerics_environment(request):
