@@ -68,16 +68,21 @@ def pytest_configure(config):
     _cache.enable()
 
 
-#: The length of the car-pendulum rollouts that several modules share (tests/test_lie.py,
-#: tests/test_numba_baseline.py, tests/test_composition.py): ``simulate``'s ``n_steps`` and
-#: ``save_every`` are compile-time constants, while ``dt``, the model's parameters and the
-#: initial state are not, so every ``simulate(car_pendulum, method, state, dt,
-#: SHARED_ROLLOUT_STEPS)`` (every state saved) of one method is one compiled program: the
-#: first test that needs it compiles it, the others load it from the run's persistent
-#: compilation cache (above) or from the worker's memory. A test that needs N < 10^4 steps
-#: takes the first N of such a run (the steps are the same; compiling is most of these
-#: tests' time, running 10^4 steps a fraction of a second).
+#: The car-pendulum rollouts that several modules share (tests/test_lie.py,
+#: tests/test_numba_baseline.py, tests/test_composition.py; tests/test_fused.py for the fused
+#: steps, every state saved): ``simulate``'s ``n_steps`` and ``save_every`` are compile-time
+#: constants, while ``dt``, the model's parameters and the initial state are not, so every
+#: ``simulate(car_pendulum, method, state, dt, SHARED_ROLLOUT_STEPS,
+#: save_every=SHARED_SAVE_EVERY)`` of one method is one compiled program: the first test
+#: that needs it compiles it, the others load it from the run's persistent compilation
+#: cache (above) or from the worker's memory. A test that needs N < 10^4 steps takes the
+#: first N of such a run (the steps are the same; compiling is most of these tests' time,
+#: running 10^4 steps a fraction of a second). 10^4 steps saving every 10th state are also
+#: the quick reproduction's paper runs (experiments/car_pendulum.py, quick mode: the four
+#: VIs from the paper's state), which tests/test_experiments.py then loads instead of
+#: compiling.
 SHARED_ROLLOUT_STEPS = 10_000
+SHARED_SAVE_EVERY = 10
 
 
 #: The modules that take longest (wall seconds each, measured on a 2-core machine under

@@ -10,18 +10,21 @@ import pytest
 import lgvi_jax as lj
 
 pytest.importorskip("numba")
-from conftest import SHARED_ROLLOUT_STEPS
+from conftest import SHARED_ROLLOUT_STEPS, SHARED_SAVE_EVERY
 from lgvi_jax.experiments import numba_lgvi as nb
 
 
 def _engine(model, method, s0, dt, n):
     """The engine's first ``n`` steps of ``dt`` from ``s0``: ``(ok, states, invariants)``,
-    the ``n + 1`` states from the start and their invariants. Taken from a run of
-    SHARED_ROLLOUT_STEPS steps (every state saved): the compiled rollout that
-    tests/test_lie.py runs for every VI method (tests/conftest.py), loaded rather than
-    compiled again; ``ok``: every step of that run succeeded."""
-    traj = lj.simulate(model, method, s0, dt, SHARED_ROLLOUT_STEPS)
-    states, invariants = jax.tree.map(lambda x: x[: n + 1], (traj.state, traj.invariants))
+    the states after 0, 10, 20, ..., n steps and their invariants. Taken from a run of
+    SHARED_ROLLOUT_STEPS steps saving every SHARED_SAVE_EVERY-th state: the compiled
+    rollout that tests/test_lie.py runs for every VI method (tests/conftest.py), loaded
+    rather than compiled again; ``ok``: every step of that run succeeded."""
+    traj = lj.simulate(model, method, s0, dt, SHARED_ROLLOUT_STEPS,
+                       save_every=SHARED_SAVE_EVERY)
+    assert n % SHARED_SAVE_EVERY == 0
+    states, invariants = jax.tree.map(lambda x: x[: n // SHARED_SAVE_EVERY + 1],
+                                      (traj.state, traj.invariants))
     return traj.ok, states, invariants
 
 
@@ -160,7 +163,8 @@ def test_numba_diagnostics_equal_the_sweeps_on_the_same_states():
     from lgvi_jax.reference import moving_scene
 
     model = moving_scene()  # generic attitude, cart moving: every term of H is non-zero
-    ok, st, inv = _engine(model, lj.LGVI(), model.default_state(), 5e-3, 200)
+    # 201 states: every 10th of the first 2000 steps
+    ok, st, inv = _engine(model, lj.LGVI(), model.default_state(), 5e-3, 2000)
     assert ok
     R, mu, q, p = (np.ascontiguousarray(np.asarray(x)) for x in (st.R, st.mu, st.q, st.p))
     params = nb.params_from_model(model)
