@@ -93,11 +93,15 @@ SHARED_SAVE_EVERY = 10
 #: (pyproject.toml) the order below is the order they are handed out (longest first: the
 #: short modules fill in at the end); the others follow in their usual order. Only the
 #: order changes: a module missing here, or a stale estimate, costs time, not a test.
+#: (test_lie.py first also because its long runs compile the rollouts the later modules
+#: share: SHARED_ROLLOUT_STEPS above.)
 LONGEST_FIRST = (
-    "test_lie.py", "test_scalarize.py", "test_identify.py", "test_distributed.py",
-    "test_blindspots.py", "test_experiments.py", "test_notebooks.py",
-    "test_reproduce_full.py", "test_fused.py", "test_sweep.py", "test_numba_baseline.py",
-    "test_composition.py", "test_xla.py",
+    "test_lie.py", "test_scalarize.py", "test_distributed.py", "test_identify.py",
+    "test_fused.py", "test_notebooks.py", "test_integrators.py", "test_blindspots.py",
+    "test_reproduce_full.py", "test_numba_baseline.py", "test_sweep.py",
+    "test_composition.py", "test_properties.py", "test_experiments.py", "test_cli.py",
+    "test_cache.py", "test_xla.py", "test_simulate.py", "test_newton.py",
+    "test_reference.py", "test_so3.py", "test_rigid_models.py",
 )
 
 
