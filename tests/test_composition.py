@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import SHARED_ROLLOUT_STEPS
+from conftest import SHARED_ROLLOUT_STEPS, SHARED_SAVE_EVERY
 from scipy.linalg import expm
 
 import lgvi_jax as L
@@ -387,9 +387,10 @@ def test_momentum_maps_over_1e4_composed_steps():
     and R stays on SO(3)."""
     model = moving_scene()
     s0 = model.default_state()
-    # The base method's run saves every state: the compiled rollout tests/test_lie.py runs
-    # (tests/conftest.py: SHARED_ROLLOUT_STEPS), loaded rather than compiled again.
-    base = L.simulate(model, LGVI(), s0, 0.02, SHARED_ROLLOUT_STEPS)
+    # The base method's run saves every 10th state: the compiled rollout tests/test_lie.py
+    # runs (tests/conftest.py: SHARED_ROLLOUT_STEPS), loaded rather than compiled again.
+    base = L.simulate(model, LGVI(), s0, 0.02, SHARED_ROLLOUT_STEPS,
+                      save_every=SHARED_SAVE_EVERY)
     dp_base, dlz_base = _drifts(base)
     for order in (4, 8):
         method = resolve_method(f"lgvi@{order}", RIGID_METHODS)

@@ -36,14 +36,24 @@ def _rotation_angle(R0, R1):
 def test_one_step_equals_the_general_engine(car, kind):
     model, s0 = car
     states = initial_conditions(model, s0, 16, 0.3, seed=3)
-    def steps(method):  # one compilation for all step sizes
-        return jax.jit(jax.vmap(lambda s, dt: method.step(model, s, dt), in_axes=(0, None)))
+    # The fused steps batched (one compilation for all step sizes); the general engine's
+    # step one state at a time through final_state (one step; n and dt are run-time
+    # values): the program tests/test_reference.py and tests/test_scalarize.py run for
+    # the same model and method, compiled once for the suite.
+    f = jax.jit(jax.vmap(lambda s, dt: fused.FusedCarPendulum(kind).step(model, s, dt),
+                         in_axes=(0, None)))
+    general = fused.KINDS[kind]()
 
-    f, g = steps(fused.FusedCarPendulum(kind)), steps(fused.KINDS[kind]())
+    def g(states, dt):
+        ends = [lj.final_state(model, general, jax.tree.map(lambda x, i=i: x[i], states),
+                               dt, 1) for i in range(len(states.mu))]
+        return (jax.tree.map(lambda *x: jnp.stack(x), *(e[0] for e in ends)),
+                np.array([int(e[1]) for e in ends]))
+
     for dt in (5e-3, 0.05, 0.1):
         a, ia = f(states, dt)
-        b, ib = g(states, dt)
-        assert np.all(np.asarray(ia.result) == 0) and np.all(np.asarray(ib.result) == 0)
+        b, codes = g(states, dt)
+        assert np.all(np.asarray(ia.result) == 0) and np.all(codes == 0)
         # Both solve to |Δξ_i| <= 1e-12 (1 + |ξ_i|) from different starts; the states agree
         # to that tolerance times the state's scale (measured 6e-13 at dt = 0.1).
         assert _max_diff(a, b) < 5e-12, dt
@@ -156,9 +166,11 @@ def test_very_large_steps_restart_broyden_where_the_chord_stalls(car):
     some = jax.tree.map(lambda x: x[:4], states)
     batch = jax.jit(jax.vmap(lambda s: lj.final_state(model, method, s, 0.2, 3)))(some)
     assert np.all(np.asarray(batch[1]) == 0)
-    single = jax.jit(lambda s: lj.final_state(model, method, s, 0.2, 3))
     for i in range(4):
-        state, code = single(jax.tree.map(lambda x, i=i: x[i], some))
+        # final_state itself (compiled, n and dt run-time values): one program with the
+        # single-trajectory steps of the next test.
+        state, code = lj.final_state(model, method, jax.tree.map(lambda x, i=i: x[i], some),
+                                     0.2, 3)
         assert int(code) == 0
         # Both layouts iterate alike to the tolerance 1e-14 relative; they round
         # differently (vector loops, FMA) and can stop an iteration apart: measured ~1e-15.
@@ -172,8 +184,16 @@ def test_single_and_batched_layouts_agree_under_nested_vmap(car):
     model, s0 = car
     method = fused.FusedCarPendulum("hamel-exact")
     states = initial_conditions(model, s0, 6, 0.1, seed=5)
-    step = jax.jit(lambda m, s: method.step(m, s, 0.02)[0])
-    singles = [step(model, jax.tree.map(lambda x, i=i: x[i], states)) for i in range(6)]
+
+    def step(m, s):
+        return method.step(m, s, 0.02)[0]
+
+    def single(m, s):  # one step of one trajectory: final_state's compiled program
+        state, code = lj.final_state(m, method, s, 0.02, 1)
+        assert int(code) == 0
+        return state
+
+    singles = [single(model, jax.tree.map(lambda x, i=i: x[i], states)) for i in range(6)]
     grid = jax.tree.map(lambda x: x.reshape(2, 3, *x.shape[1:]), states)
     nested = jax.jit(jax.vmap(jax.vmap(lambda s: method.step(model, s, 0.02)[0])))(grid)
     for i in range(6):
@@ -183,7 +203,7 @@ def test_single_and_batched_layouts_agree_under_nested_vmap(car):
     models = jax.tree.map(lambda *x: jnp.stack(x), lj.CarPendulum(m=0.5), lj.CarPendulum(m=2.0))
     over_params = jax.jit(jax.vmap(step, in_axes=(0, None)))(models, s0)
     for k, m in enumerate((0.5, 2.0)):
-        ref = step(lj.CarPendulum(m=m), s0)
+        ref = single(lj.CarPendulum(m=m), s0)
         assert _max_diff(jax.tree.map(lambda x, k=k: x[k], over_params), ref) < 1e-14
 
 

@@ -259,8 +259,10 @@ def test_fitted_inertia_is_physical_from_any_start(clean_data):
     """Whatever the start (inertias whose second moments span 3 decades, in random axes),
     and however far the optimiser throws the iterates (optax Adam with a reckless learning
     rate), every iterate is a physical inertia: the parametrisation maps every
-    unconstrained vector into the physical set. (RK4 as the integrator: physicality does
-    not depend on it, and its explicit step compiles in a fraction of the time.)"""
+    unconstrained vector into the physical set. (lgvi as the integrator: physicality does
+    not depend on it, and Adam's compiled step through lgvi compiles faster than through
+    RK4, whose explicit step differentiates the continuous equations: measured 11.0 s
+    against 14.1 s for this test's fits.)"""
     obs = identify.check_observations(clean_data, FIT_DT)
     rng = np.random.default_rng(7)
     for _ in range(3):
@@ -269,7 +271,7 @@ def test_fitted_inertia_is_physical_from_any_start(clean_data):
         J_c = Q @ (sigma.sum() * np.eye(3) - np.diag(sigma)) @ Q.T
         start = lj.CarPendulum(J=np.asarray(pivot_inertia(J_c, 1.0, PAPER_RHO_C)))
         seen = []
-        result = identify.fit(obs, FIT_DT, names=("J",), model=start, method="rk4",
+        result = identify.fit(obs, FIT_DT, names=("J",), model=start, method="lgvi",
                               optimizer="adam", lr=3.0, iterations=3, horizons=(1.0,),
                               callback=lambda i, v, seen=seen: seen.append(v))
         assert is_physical(result.J_c) and is_physical(result.model.J)

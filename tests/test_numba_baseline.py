@@ -10,18 +10,21 @@ import pytest
 import lgvi_jax as lj
 
 pytest.importorskip("numba")
-from conftest import SHARED_ROLLOUT_STEPS
+from conftest import SHARED_ROLLOUT_STEPS, SHARED_SAVE_EVERY
 from lgvi_jax.experiments import numba_lgvi as nb
 
 
 def _engine(model, method, s0, dt, n):
     """The engine's first ``n`` steps of ``dt`` from ``s0``: ``(ok, states, invariants)``,
-    the ``n + 1`` states from the start and their invariants. Taken from a run of
-    SHARED_ROLLOUT_STEPS steps (every state saved): the compiled rollout that
-    tests/test_lie.py runs for every VI method (tests/conftest.py), loaded rather than
-    compiled again; ``ok``: every step of that run succeeded."""
-    traj = lj.simulate(model, method, s0, dt, SHARED_ROLLOUT_STEPS)
-    states, invariants = jax.tree.map(lambda x: x[: n + 1], (traj.state, traj.invariants))
+    the states after 0, 10, 20, ..., n steps and their invariants. Taken from a run of
+    SHARED_ROLLOUT_STEPS steps saving every SHARED_SAVE_EVERY-th state: the compiled
+    rollout that tests/test_lie.py runs for every VI method (tests/conftest.py), loaded
+    rather than compiled again; ``ok``: every step of that run succeeded."""
+    traj = lj.simulate(model, method, s0, dt, SHARED_ROLLOUT_STEPS,
+                       save_every=SHARED_SAVE_EVERY)
+    assert n % SHARED_SAVE_EVERY == 0
+    states, invariants = jax.tree.map(lambda x: x[: n // SHARED_SAVE_EVERY + 1],
+                                      (traj.state, traj.invariants))
     return traj.ok, states, invariants
 
 
@@ -160,7 +163,8 @@ def test_numba_diagnostics_equal_the_sweeps_on_the_same_states():
     from lgvi_jax.reference import moving_scene
 
     model = moving_scene()  # generic attitude, cart moving: every term of H is non-zero
-    ok, st, inv = _engine(model, lj.LGVI(), model.default_state(), 5e-3, 200)
+    # 201 states: every 10th of the first 2000 steps
+    ok, st, inv = _engine(model, lj.LGVI(), model.default_state(), 5e-3, 2000)
     assert ok
     R, mu, q, p = (np.ascontiguousarray(np.asarray(x)) for x in (st.R, st.mu, st.q, st.p))
     params = nb.params_from_model(model)
@@ -260,13 +264,16 @@ def test_numba_compositions_match_the_engine():
     tolerance; five solves a step."""
     model = lj.CarPendulum()
     s0 = model.default_state()
-    traj = lj.simulate(model, lj.compose(lj.LGVI(), order=4), s0, 5e-3, 100)
+    # The engine's state after 100 steps: saved state 1 of the 10^4-step rollout (every
+    # 100th state saved) that tests/test_composition.py compiles for lgvi@4 on this model.
+    traj = lj.simulate(model, lj.compose(lj.LGVI(), order=4), s0, 5e-3, 10_000,
+                       save_every=100)
     R, mu, q, p = (np.asarray(x) for x in (s0.R, s0.mu, s0.q, s0.p))
     *theirs, its, code = nb.rollout("lgvi@4", R, mu, q, p, 5e-3, 100,
                                     nb.params_from_model(model))
     assert traj.ok and code == 0 and its >= 5 * 2 * 100
     for a, b in zip((traj.state.R, traj.state.mu, traj.state.q, traj.state.p), theirs,
                     strict=True):
-        np.testing.assert_allclose(b, np.asarray(a)[-1], rtol=0, atol=1e-11)
+        np.testing.assert_allclose(b, np.asarray(a)[1], rtol=0, atol=1e-11)
     with pytest.raises(ValueError, match="method must be one of"):
         nb.rollout("rk4@4", R, mu, q, p, 5e-3, 1, nb.params_from_model(model))

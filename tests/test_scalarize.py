@@ -226,9 +226,11 @@ def _max_state_diff(a, b):
                zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True))
 
 
-# lgvi (Cayley, G without w) and hamel-cayley (G with w, the paper's variations) here;
-# hamel-exact (exp map, exact variations) on every model below, hamel at large steps.
-@pytest.mark.parametrize("name", ["lgvi", "hamel-cayley"])
+# hamel-cayley (Cayley, G with w, the paper's variations) here; lgvi (Cayley, G without w)
+# in the composition test below, whose sub-steps are lgvi's steps on scalars (lgvi@4:
+# 0.41 h four times, -0.66 h once) on the same model, against the array engine to the same
+# bound; hamel-exact (exp map, exact variations) on every model below, hamel at large steps.
+@pytest.mark.parametrize("name", ["hamel-cayley"])
 def test_scalar_engine_equals_array_engine_on_the_car_pendulum(name):
     model = lj.CarPendulum()
     s0 = model.default_state()
