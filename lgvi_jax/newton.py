@@ -727,9 +727,21 @@ def _rows(obj) -> list[list[Any]]:
     return [list(obj[i]) for i in range(obj.shape[0])]
 
 
+def _scalar_jacobian(fn, y0, args) -> sc.ScalarFunction:
+    """The Jacobian of ``fn`` in ``y`` as a scalar program: forward mode (one tangent per
+    unknown) or reverse mode (one cotangent per residual), whichever leaves fewer
+    operations after folding and merging. The same matrix up to the order of the
+    floating-point sums; which mode is smaller depends on the model and the method (the
+    car-pendulum's ``lgvi``: reverse 1082 against forward 1318 operations; ``hamel``:
+    forward 1239 against 1702)."""
+    forward = sc.ScalarFunction(jax.jacfwd(fn), y0, args)
+    reverse = sc.ScalarFunction(jax.jacrev(fn), y0, args)
+    return reverse if reverse.size < forward.size else forward
+
+
 def _scalar_programs(fn, y0, args):
     """The residual and its Jacobian as scalar programs (traced once per solve)."""
-    return sc.ScalarFunction(fn, y0, args), sc.ScalarFunction(jax.jacfwd(fn), y0, args)
+    return sc.ScalarFunction(fn, y0, args), _scalar_jacobian(fn, y0, args)
 
 
 def _iterate_scalar(programs, y0, args, solver: Newton, batched: bool = False):
@@ -845,7 +857,7 @@ def _scalar_core_jvp(fn, solver, primals, tangents):
     y0, args = primals
     _, args_dot = tangents
     y, result, k, res = _scalar_core(fn, solver, y0, args)
-    jac_fn = sc.ScalarFunction(jax.jacfwd(fn), y, args)
+    jac_fn = _scalar_jacobian(fn, y, args)
 
     def dF(y, a, a_dot):
         return jax.jvp(lambda b: fn(y, b), (a,), (a_dot,))[1]

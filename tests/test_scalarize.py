@@ -112,6 +112,32 @@ def test_common_subexpressions_are_merged_and_dead_code_removed():
     assert float(sf(split(jnp.asarray(3.0)), split(jnp.asarray(5.0)))[()]) == 30.0
 
 
+@pytest.mark.parametrize("method", [LGVI(), HamelVI()], ids=["lgvi", "hamel"])
+def test_newton_jacobian_program_is_the_smaller_mode_and_equals_jacfwd(method):
+    """The scalar engine's Jacobian program is forward or reverse mode, whichever has fewer
+    operations (the car-pendulum's lgvi: reverse, hamel: forward), and equals jax.jacfwd of
+    the residual. Bound: each entry sums at most ~100 products of terms <= 1e3 here (masses,
+    inertias, 1/h), in another order: 100 * eps * 1e3 = 2e-11, taken as 1e-10."""
+    from lgvi_jax.newton import _scalar_jacobian
+
+    model = lj.CarPendulum()
+    s0 = model.default_state()
+    args = (model, s0.R, s0.mu, s0.q, s0.p, jnp.asarray(5e-3))
+
+    def flat(y, a):
+        return jnp.concatenate(method._residual((y[:3], y[3:]), a))
+
+    y = jnp.array([0.3, -0.2, 1.1, 0.05, -0.4])
+    chosen = _scalar_jacobian(flat, y, args)
+    sizes = {mode: ScalarFunction(jac(flat), y, args).size
+             for mode, jac in (("forward", jax.jacfwd), ("reverse", jax.jacrev))}
+    assert chosen.size == min(sizes.values())
+    assert sizes["reverse" if isinstance(method, LGVI) else "forward"] == chosen.size
+    got = np.array(chosen(split(y), jax.tree.map(split, args)), dtype=object)
+    got = np.vectorize(float)(got)
+    np.testing.assert_allclose(got, jax.jacfwd(flat)(y, args), rtol=0, atol=1e-10)
+
+
 def test_unsupported_primitive_is_named():
     with pytest.raises(NotImplementedError, match="argmax"):
         scalarize(lambda x: jnp.argmax(x))(jnp.arange(3.0))
