@@ -12,6 +12,7 @@ from lgvi_jax.newton import (
     ChordInverse,
     Newton,
     NewtonError,
+    ldl_solve,
     newton_solve,
     raise_if_failed,
     small_solve,
@@ -273,12 +274,31 @@ def test_spd_inverse_matches_numpy(n):
         np.testing.assert_allclose(X, np.linalg.inv(A), rtol=0,
                                    atol=50 * cond * 1e-16 * np.abs(np.linalg.inv(A)).max())
         b = rng.normal(size=n)
-        x = np.asarray(jax.jit(spd_solve)(jnp.asarray(A), jnp.asarray(b)))
-        np.testing.assert_allclose(A @ x, b, atol=50 * cond * 1e-16 * np.abs(b).max())
+        for solve in (spd_solve, ldl_solve):
+            x = np.asarray(jax.jit(solve)(jnp.asarray(A), jnp.asarray(b)))
+            np.testing.assert_allclose(A @ x, b, atol=50 * cond * 1e-16 * np.abs(b).max())
     with pytest.raises(ValueError, match="square"):
         spd_inverse(jnp.ones((2, 3)))
     with pytest.raises(ValueError, match="spd_solve"):
         spd_solve(jnp.eye(2), jnp.ones(3))
+    with pytest.raises(ValueError, match="ldl_solve"):
+        ldl_solve(jnp.eye(2), jnp.ones(3))
+
+
+def test_ldl_solve_reads_the_lower_triangle_and_is_smaller_on_scalars():
+    """``ldl_solve`` uses only the lower triangle (the upper one may hold anything) and,
+    emitted on scalars, has fewer operations than the Gauss–Jordan sweep: it is the
+    factorisation, not a different answer."""
+    from lgvi_jax.scalarize import ScalarFunction
+
+    A = jnp.array([[4.0, 1.0, 0.5], [1.0, 3.0, 0.2], [0.5, 0.2, 2.0]])
+    b = jnp.array([1.0, -2.0, 0.5])
+    junk = jnp.tril(A) + jnp.triu(jnp.full((3, 3), 7.0), 1)
+    # eps x cond (~3) x n: 1e-14 with margin
+    np.testing.assert_allclose(ldl_solve(junk, b), np.linalg.solve(A, b), atol=1e-14)
+    for n in (3, 5):
+        A, b = jnp.eye(n), jnp.ones(n)
+        assert ScalarFunction(ldl_solve, A, b).size < ScalarFunction(spd_solve, A, b).size
 
 
 def test_broyden_chord_is_superlinear_and_reaches_the_root():

@@ -66,7 +66,7 @@ import jax.numpy as jnp
 
 from .. import so3
 from ..models.rigid import AbstractRigidBodyModel, RigidState
-from ..newton import ChordInverse, Newton, newton_solve, spd_inverse, spd_solve
+from ..newton import ChordInverse, Newton, ldl_solve, newton_solve, spd_inverse
 from ..scalarize import scalarize
 from .base import AbstractIntegrator, StepInfo
 
@@ -224,9 +224,10 @@ class AbstractLieVI(AbstractIntegrator):
         return new_state, StepInfo.from_solution(sol), sol.value
 
     def _initial_guess(self, model, R0, mu0, q0, p0):
-        """The current velocities ``(ω_k, v_k)`` (inverse Legendre map)."""
+        """The current velocities ``(ω_k, v_k)`` (inverse Legendre map; emitted on scalars,
+        hence the entry-wise solve)."""
         mass, at_rest = model.mass_matrix(R0, q0)
-        x = spd_solve(mass, jnp.concatenate([mu0, p0]) - at_rest)
+        x = ldl_solve(mass, jnp.concatenate([mu0, p0]) - at_rest)
         return x[:3], x[3:]
 
     def _finish(self, model, R0, q0, p0, h, xi, u):
