@@ -45,7 +45,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-__all__ = ["ScalarFunction", "join", "scalarize", "split"]
+__all__ = ["ScalarFunction", "join", "on_scalars", "scalarize", "split"]
 
 
 # ---------------------------------------------------------------------------------------
@@ -737,6 +737,35 @@ def scalarize(fn: Callable) -> Callable:
         outs = sf(*jax.tree.map(split, args))
         return jax.tree.map(lambda o, s: join(o, s.dtype).reshape(s.shape), outs,
                             sf.out_shape, is_leaf=lambda x: isinstance(x, np.ndarray))
+
+    return wrapped
+
+
+#: The most scalar entries the arguments of :func:`on_scalars` may have (larger arrays are
+#: not "small": their products would unroll into thousands of operations).
+ON_SCALARS_MAX_ENTRIES = 256
+
+
+def on_scalars(fn: Callable, *example) -> Callable:
+    """``fn`` as a scalar program traced once for arguments shaped like ``example`` and
+    replayed with its shared values materialised (as the Newton programs are), or ``fn``
+    itself where that does not apply: an operation the interpreter does not support, or
+    arguments with more than :data:`ON_SCALARS_MAX_ENTRIES` entries. Called like ``fn``
+    with arrays; the same values to the order of floating-point sums. For small
+    diagnostics evaluated inside a loop (a model's invariants), whose dozens of 3-vector
+    and 3x3 operations otherwise cost a kernel each."""
+    if sum(math.prod(jnp.shape(x)) for x in jax.tree.leaves(example)) > ON_SCALARS_MAX_ENTRIES:
+        return fn
+    try:
+        program = ScalarFunction(fn, *example)
+    except NotImplementedError:
+        return fn
+
+    @functools.wraps(fn)
+    def wrapped(*args):
+        outs = program(*jax.tree.map(split, args), batched=True)
+        return jax.tree.map(lambda o, s: join(o, s.dtype).reshape(s.shape), outs,
+                            program.out_shape, is_leaf=lambda x: isinstance(x, np.ndarray))
 
     return wrapped
 

@@ -74,6 +74,7 @@ from . import so3
 from ._io import atomic_open, atomic_write, atomic_write_json, atomic_write_text, save_npz_atomic
 from .newton import RESULTS
 from .progress import Progress
+from .scalarize import on_scalars
 from .simulate import guarded_step
 
 __all__ = [
@@ -304,32 +305,17 @@ def _diagnostics(model, state):
     return out
 
 
-def _scalar_diagnostics(model, state0) -> Callable:
-    """:func:`_diagnostics` as a scalar program (:mod:`lgvi_jax.scalarize`, shared values
-    materialised): the invariants of a model derived by autodiff (the inverse Legendre map
-    through the kinetic-energy Hessian and its elimination) are dozens of 3-vector and 3x3
-    operations, which in a loop of one trajectory cost more than the step (heavy top
-    ``hamel``, per-step metrics: 2.2e5 steps/s on arrays, 2.0e6 on scalars). The same
-    values to the order of floating-point sums. Falls back to the array form when the
-    model's invariants use an operation the scalariser does not support."""
-    from .scalarize import ScalarFunction, join, split
-
-    try:
-        program = ScalarFunction(_diagnostics, model, state0)
-    except NotImplementedError:
-        return lambda state: _diagnostics(model, state)
-
-    def diagnostics(state):
-        outs = program(jax.tree.map(split, model), jax.tree.map(split, state), batched=True)
-        return jax.tree.map(lambda o, s: join(o, s.dtype).reshape(s.shape), outs,
-                            program.out_shape, is_leaf=lambda x: isinstance(x, np.ndarray))
-
-    return diagnostics
-
-
 def _sweep_one(model, method, state0, dt, n_steps, sample_every):
     """One trajectory of ``n_steps`` (a run-time value) with running metrics."""
-    diagnostics = _scalar_diagnostics(model, state0)
+    # On scalars (scalarize.on_scalars): the invariants of a model derived by autodiff (the
+    # inverse Legendre map through the kinetic-energy Hessian) are dozens of small array
+    # operations that in a loop cost more than the step (heavy top hamel, metrics every
+    # step, one trajectory: 2.2e5 steps/s on arrays, 2.15e6 on scalars).
+    on_scalars_ = on_scalars(_diagnostics, model, state0)
+
+    def diagnostics(state):
+        return on_scalars_(model, state)
+
     inv0 = diagnostics(state0)
     e0 = inv0["energy"]
     scale = jnp.where(e0 != 0, jnp.abs(e0), 1.0)

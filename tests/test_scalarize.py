@@ -138,6 +138,30 @@ def test_newton_jacobian_program_is_the_smaller_mode_and_equals_jacfwd(method):
     np.testing.assert_allclose(got, jax.jacfwd(flat)(y, args), rtol=0, atol=1e-10)
 
 
+def test_on_scalars_equals_the_function_or_returns_it():
+    """``on_scalars``: small arguments give the scalar program (same values to round-off,
+    bound of the module docstring), large ones or an unsupported primitive the function
+    itself."""
+    from lgvi_jax.scalarize import ON_SCALARS_MAX_ENTRIES, on_scalars
+
+    def f(A, v):
+        return {"quad": v @ A @ v, "cross": jnp.cross(v, A[0])}
+
+    A, v = _rand(1, (3, 3)), _rand(2, (3,))
+    g = on_scalars(f, A, v)
+    assert g is not f
+    for k, want in f(A, v).items():
+        np.testing.assert_allclose(jax.jit(g)(A, v)[k], want, rtol=0, atol=ROUNDING)
+    n = ON_SCALARS_MAX_ENTRIES
+    def norm2(x):
+        return x @ x
+
+    assert on_scalars(norm2, jnp.ones(n + 1)) is norm2
+    assert on_scalars(norm2, jnp.ones(n)) is not norm2
+    sort = on_scalars(jnp.sort, v)
+    assert sort is jnp.sort
+
+
 def test_unsupported_primitive_is_named():
     with pytest.raises(NotImplementedError, match="argmax"):
         scalarize(lambda x: jnp.argmax(x))(jnp.arange(3.0))

@@ -355,22 +355,24 @@ class _SortedInvariants(lj.HeavyTop):
                          ids=["car-pendulum", "heavy-top", "free-rigid-body", "fallback"])
 def test_diagnostics_on_scalars_equal_the_array_form(make):
     """The sweep's per-step diagnostics (the model's invariants and the orthogonality
-    error) run as a scalar program; they equal the array form (model.invariants,
-    so3.orthogonality_error) on perturbed states, one and vmapped. Bound: energies and
-    momenta of order 10 from sums of <= ~50 products, through the inverse Legendre map
-    (mass-matrix condition <= ~1e2): 50 * eps * 10 * 1e2 ~ 1e-11, taken as 1e-10."""
-    from lgvi_jax.sweep import _diagnostics, _scalar_diagnostics
+    error) run as a scalar program (``scalarize.on_scalars``); they equal the array form
+    (model.invariants, so3.orthogonality_error) on perturbed states, one and vmapped.
+    Bound: energies and momenta of order 10 from sums of <= ~50 products, through the
+    inverse Legendre map (mass-matrix condition <= ~1e2): 50 * eps * 10 * 1e2 ~ 1e-11,
+    taken as 1e-10."""
+    from lgvi_jax.scalarize import on_scalars
+    from lgvi_jax.sweep import _diagnostics
 
     model = make()
     states = initial_conditions(model, model.default_state(), 4, 0.3, 2)
     one = _take(states, 1)
     # the scalar program, except where the model's invariants cannot be scalarised
-    assert ((_scalar_diagnostics(model, one).__name__ == "diagnostics")
-            == (make is not _SortedInvariants))
+    assert ((on_scalars(_diagnostics, model, one) is _diagnostics)
+            == (make is _SortedInvariants))
 
     @jax.jit
     def both(model, state):
-        return _scalar_diagnostics(model, state)(state), _diagnostics(model, state)
+        return on_scalars(_diagnostics, model, state)(model, state), _diagnostics(model, state)
 
     got, want = both(model, one)
     assert set(got) == set(want) and "orthogonality_error" in got
