@@ -12,10 +12,9 @@ Four parts (``lgvi-jax bench --out DIR``; writes ``bench.json`` and ``bench.md``
    default, sharded over every device in ``jax.devices()``: on a CPU-only machine one
    XLA host device per core, ``lgvi-jax bench --devices``), from the sweep's initial
    conditions (perturbation 0.01, seed 0). The method is built as the sweep builds it
-   (:func:`lgvi_jax.sweep.sweep_method`): ``--engines auto`` is the sweep's default (the
-   fused steps for the car-pendulum's four VIs, the autodiff engine on scalars otherwise),
-   ``scalar`` the autodiff engine on scalars everywhere, so the car-pendulum's VIs get a
-   row for each. Beside each car-pendulum row, the Numba baseline of the same method
+   (:func:`lgvi_jax.sweep.sweep_method`): ``--engines scalar`` (the default) is what the
+   sweep runs, the autodiff engine on scalars; ``general`` the same equations on arrays,
+   for comparison. Beside each car-pendulum row, the Numba baseline of the same method
    (``experiments/numba_lgvi.py``, ``numba_hamel.py``: the same discrete equations,
    hand-derived and reduced to three unknowns, scalar loops, the engine's chord-then-Newton
    iteration; compositions as the same sub-steps) **with the same per-step diagnostics**
@@ -76,10 +75,11 @@ from lgvi_jax.sweep import batch_arguments, engine_name, initial_conditions, swe
 
 SYSTEMS = ("car-pendulum", "heavy-top")
 METHODS = ("lgvi", "hamel", "hamel-cayley", "hamel-exact", "lgvi@4", "lgvi@6", "lgvi@8")
-#: The sweep engines timed (``lgvi-jax sweep --engine``); rows are kept once per engine
-#: they resolve to (on the heavy top ``auto`` is ``scalar``).
-ENGINES = ("auto", "scalar")
-ENGINE_CHOICES = ("auto", "general", "scalar", "fused")
+#: The engines timed: ``scalar`` (what ``lgvi-jax sweep`` runs) and, on request,
+#: ``general`` (the autodiff engine on arrays, :func:`lgvi_jax.sweep.sweep_method` with
+#: ``scalar=False``).
+ENGINES = ("scalar",)
+ENGINE_CHOICES = ("scalar", "general")
 PARTS = ("throughput", "gradient", "fit", "sweep")
 #: The parts run unless ``--parts`` names others (``sweep`` spawns processes for minutes).
 DEFAULT_PARTS = ("throughput", "gradient", "fit")
@@ -89,7 +89,7 @@ SWEEP_WARM_RUNS = 3
 #: ~8 s), on fewer methods, the default engines only, and the gradient on arrays only (the
 #: scalar engine's gradient compiles for ~20 s).
 QUICK_METHODS = ("lgvi", "hamel", "lgvi@4")
-QUICK_ENGINES = ("auto",)
+QUICK_ENGINES = ("scalar",)
 QUICK_PARTS = ("throughput", "gradient")
 GRAD_METHODS = ("lgvi", "hamel")
 GRAD_ENGINES = ("array", "scalar")
@@ -110,7 +110,8 @@ WORK = ("Both sides compute, after every step, what `lgvi-jax sweep` records per
         "‖RᵀR - I‖_F (running max) and the Newton iterations (mean and max per step). JAX: "
         "the sweep's batched rollout (`lgvi_jax.sweep.batch_arguments(..., "
         "kind=\"metrics\")`; one trajectory is a sweep of one, on one device) with the "
-        "method `lgvi-jax sweep --engine ENGINE` builds. Numba: the same discrete "
+        "method `lgvi-jax sweep` builds (engine *scalar*; *general*: the same equations "
+        "on arrays). Numba: the same discrete "
         "equations reduced by hand to three unknowns, with the same diagnostics written in "
         "Numba (`experiments/numba_lgvi.py` `sweep_metrics`; car-pendulum only: n/a for "
         "the heavy top); one trajectory on one core, the batch on all cores.")
@@ -201,11 +202,7 @@ def _throughput(systems, methods, engines, steps, batch, repeats, nb, log) -> li
         seen = set()
         for name in methods:
             for engine in engines:
-                try:
-                    method = sweep_method(system, model, name, engine)
-                except ValueError as err:  # e.g. --engines fused on the heavy top
-                    log(f"  {system} {name} --engine {engine}: skipped ({err})")
-                    continue
+                method = sweep_method(system, name, scalar=engine == "scalar")
                 used = engine_name(method)
                 if (name, used) in seen:
                     continue
@@ -347,8 +344,7 @@ def _sweep_end_to_end(systems, steps: int, batch: int, nb, log) -> list[dict]:
                     raise RuntimeError(f"sweep {system} failed: {proc.stderr[-2000:]}")
             summary = json.loads((Path(tmp) / "out0" / "summary.json").read_text())
         row = {"system": system, "method": "hamel", "n": batch, "steps": steps,
-               "engine": engine_name(sweep_method(system, lj.scenes.get_scene(system)
-                                                  .build()[0], "hamel")),
+               "engine": engine_name(sweep_method(system, "hamel")),
                "cold_s": walls[0], "warm_s": walls[1:],
                "energy_error_max": summary["rows"][0]["energy_error_max_max"],
                "numba_run_s": None}
@@ -509,9 +505,8 @@ def _markdown(r: dict) -> str:
             f"## Throughput of the sweep's work (metrics every step; one trajectory, and a "
             f"batch of {r['batch']})",
             "",
-            WORK + " Engines: *fused* (`lj.FusedCarPendulum`, the car-pendulum's default), "
-            "*scalar* (the autodiff engine solving on scalars, the default elsewhere), "
-            "*general* (the autodiff engine on arrays). Ratio = JAX / Numba steps per "
+            WORK + " Engines: *scalar* (the autodiff engine solving on scalars, what the "
+            "sweep runs), *general* (the autodiff engine on arrays). Ratio = JAX / Numba steps per "
             "second.",
             "",
             "| system | method | engine | JAX 1 traj (steps/s) | Numba 1 traj | ratio | "
@@ -549,8 +544,7 @@ def _markdown(r: dict) -> str:
             "through the library's rollout with checkpoints (`simulate(..., "
             "checkpoint_every=K)`; implicit-function-theorem derivatives of every Newton "
             "solve), against the same rollout forward. Engines: *array* (the autodiff "
-            "engine, the library's default) and *scalar* (`with_scalar_newton`). The fused "
-            "steps have no derivatives.",
+            "engine, the library's default) and *scalar* (`with_scalar_newton`).",
             "",
             "| method | engine | K | forward (ms) | gradient (ms) | gradient / forward | "
             "compile (s) forward, gradient | gradient vs first engine (rel.) |",

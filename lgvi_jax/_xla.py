@@ -10,9 +10,10 @@ instead compiles a ``while`` loop whose body accesses fewer than
 ``xla_cpu_small_while_loop_byte_threshold`` bytes into a single function (one kernel, no
 dispatch inside); the default threshold, 1 kB, catches only the innermost Newton loop of
 one trajectory. Raised to :data:`SMALL_LOOP_BYTES`, it catches whole rollouts: measured on
-the 2-core CPU (``lgvi-jax bench``, README "Benchmark") the fused car-pendulum steps run
-2.5-3x faster for one trajectory and 1.2-1.4x faster in a batch of 1024, with the same
-results to rounding (the test suite runs with it). Loops that contain what the single-
+the 2-core CPU (``lgvi-jax bench``) car-pendulum steps written in scalars (the
+hand-reduced steps since retired; the scalar engine's are of the same kind) run 2.5-3x
+faster for one trajectory and 1.2-1.4x faster in a batch of 1024, with the same results to
+rounding (the test suite runs with it). Loops that contain what the single-
 function emitter cannot compile (custom calls such as LAPACK solves, sorts, scatters, and
 the YNN library's fusions that XLA makes of small matrix products, as in the general
 engine's steps) keep the thunk runtime.
@@ -20,10 +21,9 @@ engine's steps) keep the thunk runtime.
 **The classic elemental emitter.** ``--xla_cpu_use_fusion_emitters=false``: XLA CPU then
 generates each fusion's code with its elemental IR emitter instead of the newer MLIR
 fusion emitters, which also wrap single operations into fusions of their own. Measured on
-the 2-core CPU (``lgvi-jax bench``, same run, README "Benchmark"): compiles 20-35 % faster
-(general engine ``hamel-exact`` one trajectory 3.04 -> 2.08 s, fused ``lgvi`` batch 1.50
--> 1.33 s), the same or higher throughput, the test suite 7.4 -> 5.3 min, trajectories
-equal to rounding.
+the 2-core CPU (``lgvi-jax bench``, same run): compiles 20-35 % faster (``hamel-exact``
+on arrays, one trajectory, 3.04 -> 2.08 s; a batch of scalar steps 1.50 -> 1.33 s), the
+same or higher throughput, the test suite 7.4 -> 5.3 min, trajectories equal to rounding.
 
 The options only take effect if set before JAX starts its CPU backend, so they are added
 to ``XLA_FLAGS`` here, at import, when

@@ -291,15 +291,11 @@ def cmd_sweep(args: argparse.Namespace) -> int:
         t_final=args.t_final, n=args.n, perturb=args.perturb, seed=args.seed,
         chunk=args.chunk, sample_every=args.sample_every,
         parameters={k: v.tolist() for k, v in overrides.items()},
-        chord=args.chord, engine=args.engine,
+        chord=args.chord,
     )
     try:
         config.validate(list(scene.methods))
         model, state0 = scene.build(overrides)
-        from .integrators import fused_method
-
-        for name in config.methods:  # an impossible --engine fails before any work
-            fused_method(name, model, config.engine, config.chord)
     except (SweepError, ValueError) as err:
         raise UsageError(str(err)) from None
     quiet = args.json or index != 0  # in a distributed sweep, process 0 speaks for all
@@ -320,7 +316,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
         from .sweep import sweep_method
 
         def make_method(name):
-            return sweep_method(scene.name, model, name, config.engine, config.chord)
+            return sweep_method(scene.name, name, config.chord)
 
         summary = run_sweep(config, model, state0, make_method, Path(args.out),
                             resume=args.resume, progress=not quiet, log=log, warn=warn)
@@ -571,13 +567,6 @@ def build_parser() -> argparse.ArgumentParser:
                     help="chord matrix of the Lie-group VIs' Newton solves: the Jacobian "
                     "(default) or the continuous Legendre matrix (same solutions, faster "
                     "batched)")
-    sw.add_argument("--engine", choices=("auto", "general", "fused", "scalar"),
-                    default="auto",
-                    help="auto (default): the fused steps where they exist (the "
-                    "car-pendulum's lgvi, hamel, hamel-cayley, hamel-exact), else the "
-                    "autodiff engine solving on scalars (with --chord exact; 2-3x faster "
-                    "batched); general: the autodiff engine on arrays (it honours --chord); "
-                    "scalar: the autodiff engine on scalars; fused: require the fused steps")
     sw.add_argument("--json", action="store_true",
                     help="print the summary as one JSON object (no progress bar)")
     dist = sw.add_argument_group(
@@ -609,7 +598,7 @@ def build_parser() -> argparse.ArgumentParser:
     be.add_argument("--out", required=True, metavar="DIR", help="output folder")
     be.add_argument("--quick", action="store_true",
                     help="small sizes (smoke test): 1000 steps, batch 64, methods "
-                    "lgvi,hamel,lgvi@4, engines auto, parts throughput,gradient")
+                    "lgvi,hamel,lgvi@4, engine scalar, parts throughput,gradient")
     be.add_argument("--steps", type=_positive_int, default=None, help="steps (default 10^4)")
     be.add_argument("--batch", type=_positive_int, default=None,
                     help="batch size (default 1024)")
@@ -619,9 +608,9 @@ def build_parser() -> argparse.ArgumentParser:
     be.add_argument("--systems", default="car-pendulum,heavy-top", metavar="S[,S...]",
                     help="systems of the throughput part (default car-pendulum,heavy-top)")
     be.add_argument("--engines", default=None, metavar="E[,E...]",
-                    help="sweep engines to time, as `sweep --engine` (auto, general, scalar, "
-                    "fused; default auto,scalar: the default and the autodiff engine on "
-                    "scalars, one row per engine they resolve to)")
+                    help="engines to time: scalar (the autodiff engine on scalars, what "
+                    "`sweep` runs; default) and general (the same equations on arrays, "
+                    "for comparison)")
     be.add_argument("--parts", default=None, metavar="P[,P...]",
                     help="throughput, gradient, fit, sweep (default the first three; "
                     "sweep: a hamel sweep end to end in fresh processes, cold "

@@ -125,10 +125,6 @@ class SweepConfig:
     #: The Lie-group VIs' chord matrix (``"exact"`` or ``"mass"``): the same solutions to
     #: round-off, ``"mass"`` is faster batched (``lgvi-jax bench``).
     chord: str = "exact"
-    #: ``"auto"`` (fused steps where they exist: the car-pendulum's lgvi and Hamel VIs,
-    #: :mod:`lgvi_jax.integrators.fused`), ``"general"`` (always the autodiff engine) or
-    #: ``"fused"`` (required). The same discrete equations; stored in the manifest.
-    engine: str = "auto"
 
     def to_json(self) -> dict[str, Any]:
         d = dataclasses.asdict(self)
@@ -136,8 +132,6 @@ class SweepConfig:
         d["dts"] = list(self.dts)
         if d["chord"] == "exact":  # the default: manifests of earlier sweeps stay resumable
             del d["chord"]
-        if d["engine"] == "general":  # what sweeps before the fused steps used
-            del d["engine"]
         return d
 
     def n_steps(self, dt: float) -> int:
@@ -169,11 +163,6 @@ class SweepConfig:
             raise SweepError("--method: give at least one method (e.g. lgvi,hamel)")
         if self.chord not in ("exact", "mass"):
             raise SweepError(f"--chord must be 'exact' or 'mass', got {self.chord!r}")
-        from .integrators.fused import ENGINES
-
-        if self.engine not in ENGINES:
-            raise SweepError(f"--engine must be one of {', '.join(ENGINES)}, got "
-                             f"{self.engine!r}")
         if len(set(self.methods)) != len(self.methods):
             raise SweepError(f"--method: a method is listed twice: {','.join(self.methods)}")
         if valid_methods is not None:
@@ -204,37 +193,30 @@ class SweepConfig:
             raise SweepError(f"--seed must be an integer, got {self.seed!r}")
 
 
-def sweep_method(system: str, model, name: str, engine: str = "auto",
-                 chord: str = "exact") -> Any:
-    """The integrator that ``lgvi-jax sweep SYSTEM --method NAME --engine ENGINE --chord
-    CHORD`` runs on ``model``: the fused step where ``engine`` asks for one and it exists
-    (:func:`~lgvi_jax.integrators.fused_method`: the car-pendulum's ``lgvi`` and Hamel
-    VIs under ``auto``), else the scene's method (``NAME`` may be a composition,
-    ``lgvi@6``) with the chord matrix ``chord``, solved on scalars
-    (:func:`~lgvi_jax.integrators.with_scalar_newton`) under ``auto`` and ``scalar``.
-    Raises ``ValueError`` for an unknown method or an engine that cannot be honoured."""
-    from .integrators import Composition, fused_method, with_chord_matrix, with_scalar_newton
+def sweep_method(system: str, name: str, chord: str = "exact", *,
+                 scalar: bool = True) -> Any:
+    """The integrator that ``lgvi-jax sweep SYSTEM --method NAME --chord CHORD`` runs: the
+    scene's method (``NAME`` may be a composition, ``lgvi@6``) with the chord
+    matrix ``chord``, solved on scalars (:func:`~lgvi_jax.integrators.with_scalar_newton`,
+    wherever its settings allow it: ``--chord exact``). ``scalar=False``: the autodiff
+    engine on arrays throughout (the same equations; for ``lgvi-jax bench``'s
+    comparison). Raises ``ValueError`` for an unknown method."""
+    from .integrators import Composition, with_chord_matrix, with_scalar_newton
     from .scenes import get_scene
 
-    fused = fused_method(name, model, engine, chord)
-    if fused is not None:
-        return fused
     method = with_chord_matrix(get_scene(system).method(name), chord)
-    if engine in ("auto", "scalar"):
+    if scalar:
         method = with_scalar_newton(method)
-    elif isinstance(method, Composition):  # general: the array engine throughout
+    elif isinstance(method, Composition):  # the array engine throughout
         method = dataclasses.replace(method, scalar=False)
     return method
 
 
 def engine_name(method) -> str:
-    """``"fused"``, ``"scalar"`` (the autodiff engine solving on scalars) or ``"general"``
-    (the autodiff engine on arrays): which engine runs ``method`` (also inside a
-    composition)."""
-    from .integrators import Composition, FusedCarPendulum
+    """``"scalar"`` (the autodiff engine solving on scalars) or ``"general"`` (the autodiff
+    engine on arrays): which engine runs ``method`` (also inside a composition)."""
+    from .integrators import Composition
 
-    if isinstance(method, FusedCarPendulum):
-        return "fused"
     base = method._sub_step_method() if isinstance(method, Composition) else method
     newton = getattr(base, "newton", None)
     return "scalar" if getattr(newton, "scalar", False) else "general"
@@ -404,7 +386,7 @@ _RUNNERS: dict[Any, Callable] = {}
 #: cache. Measured on one core (lgvi, mass chord, 2000 steps): 1.23e6 steps/s for 512 at
 #: once, 8.9e5 for 1024 or 2048 at once, 1.22e6 for 2048 in blocks of 512.
 BLOCK = 512
-#: The block size for the steps emitted on scalars (the scalar engine, the fused steps):
+#: The block size for the steps emitted on scalars (the scalar engine):
 #: their hundreds of live values are each a vector over the block, so the working set grows
 #: with it. Measured (2 devices, 1024 trajectories, 2000 steps, interleaved): car-pendulum
 #: ``lgvi`` on scalars 2.2e6 / 1.5e6 / 8.4e5 steps/s in blocks of 128 / 256 / 512, fused
@@ -646,8 +628,10 @@ def prepare_out_dir(out: Path, config: SweepConfig, resume: bool,
         if not resume:
             raise SweepError(f"--out {out}: already holds a sweep (manifest.json); pass "
                              "--resume to continue it, or choose another folder")
-        if old["config"] != manifest["config"]:
-            old_cfg = old["config"]
+        # ``engine`` (sweeps before the fused steps were retired) chose between engines
+        # that solve the same equations: not part of the configuration any more.
+        old_cfg = {k: v for k, v in old["config"].items() if k != "engine"}
+        if old_cfg != manifest["config"]:
             diffs = [k for k in manifest["config"] if old_cfg.get(k) != manifest["config"][k]]
             raise SweepError(f"--resume: the sweep in {out} was started with a different "
                              f"configuration (differs in: {', '.join(diffs) or 'format'}); "

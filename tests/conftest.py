@@ -69,12 +69,12 @@ def pytest_configure(config):
 
 
 #: The car-pendulum rollouts that several modules share (tests/test_lie.py,
-#: tests/test_numba_baseline.py, tests/test_composition.py; tests/test_fused.py for the fused
-#: steps, every state saved): ``simulate``'s ``n_steps`` and ``save_every`` are compile-time
-#: constants, while ``dt``, the model's parameters and the initial state are not, so every
-#: ``simulate(car_pendulum, method, state, dt, SHARED_ROLLOUT_STEPS,
-#: save_every=SHARED_SAVE_EVERY)`` of one method is one compiled program: the first test
-#: that needs it compiles it, the others load it from the run's persistent compilation
+#: tests/test_numba_baseline.py, tests/test_composition.py): ``simulate``'s ``n_steps``
+#: and ``save_every`` are compile-time constants, while ``dt``, the model's parameters and
+#: the initial state are not, so every ``simulate(car_pendulum, method, state, dt,
+#: SHARED_ROLLOUT_STEPS, save_every=SHARED_SAVE_EVERY)`` of one method is one compiled
+#: program: the first test that needs it compiles it, the others load it from the run's
+#: persistent compilation
 #: cache (above) or from the worker's memory. A test that needs N < 10^4 steps takes the
 #: first N of such a run (the steps are the same; compiling is most of these tests' time,
 #: running 10^4 steps a fraction of a second). 10^4 steps saving every 10th state are also
@@ -97,7 +97,7 @@ SHARED_SAVE_EVERY = 10
 #: share: SHARED_ROLLOUT_STEPS above.)
 LONGEST_FIRST = (
     "test_lie.py", "test_scalarize.py", "test_distributed.py", "test_identify.py",
-    "test_fused.py", "test_notebooks.py", "test_integrators.py", "test_blindspots.py",
+    "test_notebooks.py", "test_integrators.py", "test_blindspots.py",
     "test_reproduce_full.py", "test_numba_baseline.py", "test_sweep.py",
     "test_composition.py", "test_properties.py", "test_experiments.py", "test_cli.py",
     "test_cache.py", "test_xla.py", "test_simulate.py", "test_newton.py",

@@ -188,7 +188,7 @@ def test_bench_markdown_reports_the_measured_values(tmp_path):
                         "device_kind": "cpu", "cpu_count": 2, "jax": "0.0"},
         "numba": {"version": "0.0", "threads": 2},
         "throughput": [
-            {"system": "car-pendulum", "method": "lgvi", "engine": "fused", "jax": jax_row,
+            {"system": "car-pendulum", "method": "lgvi", "engine": "scalar", "jax": jax_row,
              "numba": numba_row, "ratio_single": 0.5, "ratio_batch": 5.0},
             {"system": "heavy-top", "method": "lgvi@4", "engine": "scalar", "jax": jax_row,
              "numba": None},
@@ -212,7 +212,7 @@ def test_bench_markdown_reports_the_measured_values(tmp_path):
     }
     text = _markdown(result)
     assert "h = 0.005, 50 steps" in text and "batch of 4" in text
-    assert ("| car-pendulum | lgvi | fused | 1.23e+04 | 2.47e+04 | 0.50 | 6.79e+04 | 1.36e+04 "
+    assert ("| car-pendulum | lgvi | scalar | 1.23e+04 | 2.47e+04 | 0.50 | 6.79e+04 | 1.36e+04 "
             "| 5.00 | 1, 0 | 1.25e-05, 1.50e-05 | 1.50, 2.25 | 0.50 |") in text
     assert ("| heavy-top | lgvi@4 | scalar | 1.23e+04 | n/a | n/a | 6.79e+04 | n/a | n/a | "
             "1, n/a | 1.25e-05, n/a | 1.50, 2.25 | 0.50 |") in text
@@ -229,11 +229,11 @@ def test_bench_markdown_reports_the_measured_values(tmp_path):
 def test_bench_command_quick_run(tmp_path, capsys):
     """``lgvi-jax bench --quick`` end to end on one method and one system, few steps and a
     small batch, its throughput part (Numba's compilation included): on the car-pendulum
-    the fused step beside the Numba baseline. bench.json holds positive throughputs, no
+    the scalar engine's step beside the Numba baseline. bench.json holds positive throughputs, no
     failed trajectory, the same worst energy error on both sides (the same equations and
     diagnostics: to the solvers' tolerance) and ratios that are JAX over Numba; bench.md
     is what was printed. (``--systems car-pendulum --parts throughput``: the heavy top's
-    row, the scalar engine without a baseline, and the gradient part, timings of a
+    row, without a baseline, and the gradient part, timings of a
     jax.grad whose values are checked elsewhere (tests/test_identify.py: checkpointed
     gradients equal plain ones; tests/test_lie.py: gradients against central
     differences), compiled four programs, ~15 s, for no other check; their rows in
@@ -249,13 +249,13 @@ def test_bench_command_quick_run(tmp_path, capsys):
     assert result["quick"] is True and result["steps"] == 20 and result["batch"] == 2
     assert "long_run" not in result and "fit" not in result and "gradient" not in result
     rows = {(r["system"], r["method"], r["engine"]): r for r in result["throughput"]}
-    assert set(rows) == {("car-pendulum", "lgvi", "fused")}
+    assert set(rows) == {("car-pendulum", "lgvi", "scalar")}
     for row in rows.values():
         j = row["jax"]
         assert j["single_failed"] == 0 and j["batch_failed"] == 0
         assert j["single_steps_per_s"] > 0 and j["batch_steps_per_s"] > 0
         assert 0 < j["batch_energy_error_max"] < 1e-3 and j["batch_newton_mean"] >= 1
-    car = rows["car-pendulum", "lgvi", "fused"]
+    car = rows["car-pendulum", "lgvi", "scalar"]
     n = car["numba"]
     assert n["single_failed"] == 0 and n["batch_failed"] == 0
     assert n["single_steps_per_s"] > 0 and n["batch_steps_per_s"] > 0
@@ -264,4 +264,4 @@ def test_bench_command_quick_run(tmp_path, capsys):
     for k in ("single", "batch"):
         assert car[f"ratio_{k}"] == pytest.approx(
             car["jax"][f"{k}_steps_per_s"] / n[f"{k}_steps_per_s"], rel=1e-12)
-    assert "| car-pendulum | lgvi | fused |" in printed
+    assert "| car-pendulum | lgvi | scalar |" in printed

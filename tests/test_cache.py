@@ -101,7 +101,7 @@ def _batch(method_name="hamel"):
     from lgvi_jax.scenes import get_scene
 
     model, state0 = get_scene("free-rigid-body").build({})
-    method = sweep.sweep_method("free-rigid-body", model, method_name)
+    method = sweep.sweep_method("free-rigid-body", method_name)
     states = sweep.initial_conditions(model, state0, 4, 0.1, 3)
     return sweep.batch_arguments(model, method, states, 0.01, 50)
 

@@ -393,30 +393,32 @@ def test_compositions_solve_on_scalars_and_equal_the_array_engine():
     # differences)
 
 
-def test_sweep_engines_agree(tmp_path, capsys):
-    """``--engine scalar`` (what ``auto`` uses without fused steps) and ``general`` give
-    the same metrics to round-off. (On the car-pendulum's ``hamel`` with 64 trajectories
-    in one chunk: the sweep then runs the two batched programs of the large-step test
-    above, whose step and step count are run-time values, so nothing is compiled again;
-    the scalar engine in a sweep of another system: tests/test_blindspots.py, the heavy
-    top under ``auto``.)"""
+def test_the_sweep_equals_the_array_engine(tmp_path, capsys):
+    """``lgvi-jax sweep`` (the autodiff engine on scalars) gives the metrics of the array
+    engine's batched rollout on the same initial conditions, to round-off. (On the
+    car-pendulum's ``hamel`` with 64 trajectories in one chunk: both run the batched
+    programs of the large-step test above, whose step and step count are run-time values,
+    so nothing is compiled again.)"""
     import csv
 
     from lgvi_jax.cli import main
+    from lgvi_jax.sweep import initial_conditions, run_batch
 
-    rows = {}
-    for engine in ("general", "scalar"):
-        out = tmp_path / engine
-        assert main(["sweep", "car-pendulum", "--method", "hamel", "--dt", "0.01",
-                     "--t-final", "1", "--n", "64", "--chunk", "64", "--engine", engine,
-                     "--out", str(out), "--json"]) == 0
-        capsys.readouterr()
-        with open(out / "trajectories.csv") as f:
-            rows[engine] = list(csv.DictReader(f))
-    for a, b in zip(rows["general"], rows["scalar"], strict=True):
-        assert a["result"] == b["result"] == "0"
+    out = tmp_path / "sweep"
+    assert main(["sweep", "car-pendulum", "--method", "hamel", "--dt", "0.01", "--t-final",
+                 "1", "--n", "64", "--chunk", "64", "--perturb", "0.01", "--seed", "0",
+                 "--out", str(out), "--json"]) == 0
+    capsys.readouterr()
+    with open(out / "trajectories.csv") as f:
+        rows = sorted(csv.DictReader(f), key=lambda r: int(r["index"]))
+    model = lj.CarPendulum()
+    states = initial_conditions(model, model.default_state(), 64, 0.01, 0)
+    ref = run_batch(model, HamelVI(), states, 0.01, 100)
+    assert len(rows) == 64
+    for i, row in enumerate(rows):
+        assert row["result"] == "0" and ref["result"][i] == 0
         # relative energy errors ~1e-2 (hamel at h = 0.01) computed from states that agree
         # to the Newton tolerance (both engines stop at updates <= 1e-12 (1 + |ξ|)):
         # measured 9e-12 relative, bound 1e-6
-        assert float(b["energy_error_max"]) == pytest.approx(float(a["energy_error_max"]),
-                                                              rel=1e-6, abs=1e-13)
+        assert float(row["energy_error_max"]) == pytest.approx(
+            float(ref["energy_error_max"][i]), rel=1e-6, abs=1e-13)

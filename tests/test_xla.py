@@ -20,7 +20,7 @@ import lgvi_jax as lj
 model = lj.CarPendulum()
 out = {}
 for name in ("lgvi", "hamel-exact"):
-    method = lj.FusedCarPendulum(name)
+    method = lj.integrators.with_scalar_newton(lj.RIGID_METHODS[name]())
     run = jax.jit(lambda s: lj.final_state(model, method, s, 5e-3, 2000))
     state, code = run(model.default_state())
     out[name] = {"R": np.asarray(state.R).tolist(), "mu": np.asarray(state.mu).tolist(),

@@ -15,7 +15,6 @@ from .composition import (
     with_chord_matrix,
     with_scalar_newton,
 )
-from .fused import FusedCarPendulum, fused_method
 from .galerkin import GalerkinVI
 from .gauss_legendre import GaussLegendre
 from .lie import LGVI, AbstractLieVI, HamelVI
@@ -61,7 +60,6 @@ __all__ = [
     "AbstractLieVI",
     "Composition",
     "CompositionScheme",
-    "FusedCarPendulum",
     "GalerkinVI",
     "GaussLegendre",
     "HamelVI",
@@ -69,7 +67,6 @@ __all__ = [
     "StepInfo",
     "StormerVerlet",
     "compose",
-    "fused_method",
     "parse_method",
     "resolve_method",
     "with_chord_matrix",
