@@ -673,6 +673,42 @@ def _materialization_points(jaxpr) -> frozenset:
     return frozenset(keep)
 
 
+# 2π in three parts (Cody & Waite): the first has 8 significant bits, so ``k P1`` is exact,
+# and ``t - k 2π`` is accurate to ~1e-18 |k| absolute. sin(x)/x and cos(x) as polynomials
+# in x²: first omitted terms < 1e-18 for |x| <= π/4.
+_TWO_PI_1 = 6.28125
+_TWO_PI_2 = 0.001935307179586477
+_TWO_PI_3 = -1.0033115225336665e-19
+_INV_TWO_PI = 0.15915494309189535
+_SIN_X = tuple((-1.0) ** n / math.factorial(2 * n + 1) for n in range(9))
+_COS_X = tuple((-1.0) ** n / math.factorial(2 * n) for n in range(9))
+
+
+def _horner(x, coeffs):
+    out = coeffs[-1]
+    for c in reversed(coeffs[:-1]):
+        out = out * x + c
+    return out
+
+
+def sin_cos(t):
+    """``(sin t, cos t)`` of float64 ``t`` by arithmetic alone: ``t`` reduced by 2π to
+    ``r`` in [-π, π], sine and cosine of ``r/4`` by their Taylor polynomials (9 terms),
+    two doublings. Within 1e-15 of ``sin``/``cos`` for ``|t| <= 100`` (tested).
+
+    The batched replay of a scalar program emits its float64 ``sin`` and ``cos`` this
+    way: XLA's CPU sine costs ~9 ns per element, 30 multiply-adds' worth (measured), and
+    the closed forms of :mod:`lgvi_jax.so3` are evaluated even where their Taylor branch
+    is selected. The car-pendulum's exp-map Hamel steps, batched: 1.5x faster."""
+    k = lax.round(t * _INV_TWO_PI, lax.RoundingMethod.TO_NEAREST_EVEN)
+    r = ((t - k * _TWO_PI_1) - k * _TWO_PI_2) - k * _TWO_PI_3
+    x = 0.25 * r
+    x2 = x * x
+    s1, c1 = x * _horner(x2, _SIN_X), _horner(x2, _COS_X)
+    s2, c2 = 2.0 * s1 * c1, (c1 - s1) * (c1 + s1)
+    return 2.0 * s2 * c2, (c2 - s2) * (c2 + s2)
+
+
 def _replay(closed, flat, keep, one=None):
     """Evaluate a scalar program on scalars (folding with call-site constants)."""
     jaxpr = closed.jaxpr
@@ -690,7 +726,10 @@ def _replay(closed, flat, keep, one=None):
     for eqn in jaxpr.eqns:
         invals = [read(v) for v in eqn.invars]
         name = eqn.primitive.name
-        if name in _ELEMENTWISE and len(eqn.outvars) == 1 and not eqn.outvars[0].aval.shape:
+        if (one is not None and name in ("sin", "cos") and not _is_const(invals[0])
+                and eqn.outvars[0].aval.dtype == np.float64):
+            outs = [sin_cos(invals[0])[name == "cos"]]  # batched: by arithmetic
+        elif name in _ELEMENTWISE and len(eqn.outvars) == 1 and not eqn.outvars[0].aval.shape:
             outs = [_apply(name, eqn.params, invals, eqn.outvars[0].aval.dtype, eqn.primitive)]
         else:
             subfuns, params = eqn.primitive.get_bind_params(eqn.params)

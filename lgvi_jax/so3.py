@@ -63,7 +63,6 @@ Shepperd, "Quaternion from rotation matrix", *J. Guidance and Control* 1 (1978).
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
 import jax
@@ -166,49 +165,12 @@ def _theta_sq(w: jax.Array) -> jax.Array:
     return jnp.sum(w * w, axis=-1)
 
 
-# 2π in two parts (Cody & Waite): the reduction t - k 2π keeps ~1e-16 absolute accuracy
-# for |k| up to ~1e6.
-_TWO_PI_HI = 6.283185307179586
-_TWO_PI_LO = 2.4492935982947064e-16
-# sin(x)/x and cos(x) in x²: the first omitted terms are < 1e-18 for |x| <= π/4.
-_SIN_X = tuple((-1.0) ** n / math.factorial(2 * n + 1) for n in range(9))
-_COS_X = tuple((-1.0) ** n / math.factorial(2 * n) for n in range(9))
-
-
-def _half_angle(t: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """``(sin(t/2), cos(t/2))`` up to a common sign, by arithmetic alone: ``t`` reduced
-    to ``r`` in [-π, π] by 2π, polynomials of ``x = r/4`` (|x| <= π/4) and one doubling.
-
-    The closed forms below need only ``sin t = 2 s c``, ``cos t = c² - s²``, ``1 - cos t =
-    2 s²`` and ``cot(t/2) = c/s``, in which the sign cancels. Why not ``jnp.sin``: XLA's CPU
-    sine and cosine cost ~9 ns per element, 30-60 multiplications' worth (measured), and the
-    closed branch is evaluated even where the Taylor branch is selected (``where``, or a
-    batch of steps of which only some need it); the exp-map steps spent a third of their
-    time in them. Same values to a few ulps."""
-    k = jnp.round(t * (1.0 / _TWO_PI_HI))
-    r = (t - k * _TWO_PI_HI) - k * _TWO_PI_LO
-    x = 0.25 * r
-    x2 = x * x
-    s1, c1 = x * _poly(x2, _SIN_X), _poly(x2, _COS_X)
-    return 2.0 * s1 * c1, (c1 - s1) * (c1 + s1)
-
-
-def _sin(t: jax.Array) -> jax.Array:
-    s, c = _half_angle(t)
-    return 2.0 * s * c
-
-
-def _cot_half(t: jax.Array) -> jax.Array:
-    s, c = _half_angle(t)
-    return c / s
-
-
 # sin(t)/t = sum (-1)^k t^2k / (2k+1)!
 def _sinc(theta_sq: jax.Array) -> jax.Array:
     return _coefficient(
         theta_sq,
         (1.0, -1.0 / 6, 1.0 / 120, -1.0 / 5040, 1.0 / 362880, -1.0 / 39916800),
-        lambda t: _sin(t) / t,
+        lambda t: jnp.sin(t) / t,
     )
 
 
@@ -217,7 +179,7 @@ def _one_minus_cos(theta_sq: jax.Array) -> jax.Array:
     return _coefficient(
         theta_sq,
         (0.5, -1.0 / 24, 1.0 / 720, -1.0 / 40320, 1.0 / 3628800, -1.0 / 479001600),
-        lambda t: 2.0 * _half_angle(t)[0] ** 2 / (t * t),
+        lambda t: 2.0 * jnp.sin(0.5 * t) ** 2 / (t * t),
     )
 
 
@@ -226,7 +188,7 @@ def _t_minus_sin(theta_sq: jax.Array) -> jax.Array:
     return _coefficient(
         theta_sq,
         (1.0 / 6, -1.0 / 120, 1.0 / 5040, -1.0 / 362880, 1.0 / 39916800, -1.0 / 6227020800),
-        lambda t: (t - _sin(t)) / (t * t * t),
+        lambda t: (t - jnp.sin(t)) / (t * t * t),
     )
 
 
@@ -237,7 +199,7 @@ def _dexp_inv_coeff(theta_sq: jax.Array) -> jax.Array:
     return _coefficient(
         theta_sq,
         (1.0 / 12, 1.0 / 720, 1.0 / 30240, 1.0 / 1209600, 1.0 / 47900160),
-        lambda t: 1.0 / (t * t) - _cot_half(t) / (2.0 * t),
+        lambda t: 1.0 / (t * t) - jnp.cos(0.5 * t) / (2.0 * t * jnp.sin(0.5 * t)),
     )
 
 
