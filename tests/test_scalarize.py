@@ -157,6 +157,8 @@ def test_sin_cos_by_arithmetic():
     small = (np.abs(t) < 1) & (t != 0)
     assert float(np.max(np.abs(s[small] / ref_s[small] - 1))) <= 5e-15
     assert s[t == 0][0] == 0.0 and c[t == 0][0] == 1.0
+    bad = jax.vmap(sin_cos)(jnp.asarray([np.inf, -np.inf, np.nan]))
+    assert not np.any(np.isfinite(np.asarray(bad)))  # failure as a value, not a number
 
 
 def test_batched_replay_emits_sine_and_cosine_by_arithmetic():
