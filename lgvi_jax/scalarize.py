@@ -729,7 +729,8 @@ def _replay(closed, flat, keep, one=None):
         name = eqn.primitive.name
         if (one is not None and name in ("sin", "cos") and not _is_const(invals[0])
                 and eqn.outvars[0].aval.dtype == np.float64):
-            outs = [sin_cos(invals[0])[name == "cos"]]  # batched: by arithmetic
+            sine, cosine = sin_cos(invals[0])  # batched: by arithmetic
+            outs = [sine if name == "sin" else cosine]
         elif name in _ELEMENTWISE and len(eqn.outvars) == 1 and not eqn.outvars[0].aval.shape:
             outs = [_apply(name, eqn.params, invals, eqn.outvars[0].aval.dtype, eqn.primitive)]
         else:
