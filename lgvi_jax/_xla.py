@@ -24,6 +24,9 @@ fusion emitters, which also wrap single operations into fusions of their own. Me
 the 2-core CPU (``lgvi-jax bench``, same run): compiles 20-35 % faster (``hamel-exact``
 on arrays, one trajectory, 3.04 -> 2.08 s; a batch of scalar steps 1.50 -> 1.33 s), the
 same or higher throughput, the test suite 7.4 -> 5.3 min, trajectories equal to rounding.
+XLA has since retired that emitter and its flag (jaxlib 0.11 aborts at the first
+computation on an unknown ``XLA_FLAGS`` entry), so the flag is added only for the jaxlib
+versions that know it (:data:`EMITTER_FLAG_BEFORE`).
 
 The options only take effect if set before JAX starts its CPU backend, so they are added
 to ``XLA_FLAGS`` here, at import, when
@@ -54,6 +57,20 @@ OPT_OUT = "LGVI_JAX_XLA_TUNING"
 
 #: The ``XLA_FLAGS`` entry of the emitter setting (module docstring).
 EMITTER_FLAG = "--xla_cpu_use_fusion_emitters=false"
+#: The first jaxlib version without that flag (seen: 0.10.2 has it, 0.11.2 aborts on it).
+EMITTER_FLAG_BEFORE = (0, 11)
+
+
+def _emitter_flag_known() -> bool:
+    """Whether the installed jaxlib knows :data:`EMITTER_FLAG` (an unreadable version: no,
+    since an unknown flag aborts the process and the flag only saves compile time)."""
+    from importlib import metadata
+
+    try:
+        parts = metadata.version("jaxlib").split(".")[:2]
+        return tuple(int(x) for x in parts) < EMITTER_FLAG_BEFORE
+    except (metadata.PackageNotFoundError, ValueError):
+        return False
 
 
 class XlaSettingWarning(UserWarning):
@@ -75,12 +92,15 @@ def flag() -> str:
 
 def flags() -> list[str]:
     """Every ``XLA_FLAGS`` entry this module adds (where the user's flags leave room)."""
-    return [flag(), EMITTER_FLAG]
+    return [entry for entry, _ in _settings()]
 
 
-# (entry, option names that mean the user has chosen it already)
-_SETTINGS = ((flag(), (_OPTION, "xla_backend_extra_options")),
-             (EMITTER_FLAG, ("xla_cpu_use_fusion_emitters",)))
+def _settings() -> list[tuple[str, tuple[str, ...]]]:
+    """``(entry, option names that mean the user has chosen it already)`` per setting."""
+    out = [(flag(), (_OPTION, "xla_backend_extra_options"))]
+    if _emitter_flag_known():
+        out.append((EMITTER_FLAG, ("xla_cpu_use_fusion_emitters",)))
+    return out
 
 
 def configure() -> bool:
@@ -89,7 +109,7 @@ def configure() -> bool:
     current = os.environ.get("XLA_FLAGS", "")
     if os.environ.get(OPT_OUT, "1").strip() == "0":
         return _OPTION in current
-    missing = [entry for entry, names in _SETTINGS if not any(n in current for n in names)]
+    missing = [entry for entry, names in _settings() if not any(n in current for n in names)]
     if not missing:
         return _OPTION in current
     if _backend_started():

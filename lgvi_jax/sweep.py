@@ -475,8 +475,18 @@ def batch_arguments(model, method, states, dt, n_steps, *, sample_every=1, devic
     params, static = eqx.partition((model, method), eqx.is_array)
     args = (_place(params, devices, False), static, _place(states, devices, True),
             jnp.float64(dt), jnp.int32(n_steps), jnp.int32(sample_every))
-    block = BLOCK if engine_name(method) == "general" else min(BLOCK, SCALAR_BLOCK)
+    block = _block(method, devices, batch)
     return _runner(devices, kind, block), args
+
+
+def _block(method, devices, batch: int) -> int:
+    """The vectorised block of one device's share: :data:`BLOCK` or :data:`SCALAR_BLOCK`
+    on CPUs (whose caches the working set must fit), the whole share on accelerators
+    (whose throughput needs every trajectory at once; a sequence of blocks would
+    serialise them)."""
+    if devices[0].platform != "cpu":
+        return max(1, -(-batch // len(devices)))
+    return BLOCK if engine_name(method) == "general" else min(BLOCK, SCALAR_BLOCK)
 
 
 def run_batch(model, method, states, dt: float, n_steps: int, *, sample_every: int = 1,

@@ -123,6 +123,23 @@ def test_large_batches_run_in_blocks_with_the_same_results(car, monkeypatch):
     assert len(np.unique(np.round(one_vmap["energy_error_max"], 15))) == 4
 
 
+def test_accelerators_run_the_whole_share_as_one_block():
+    """On a CPU a device's share runs in cache-sized blocks; on an accelerator the block is
+    the whole share (a sequence of blocks would serialise a GPU: measured on an H200, the
+    car-pendulum batch of 524288 at 2.2e8 steps/s as one block)."""
+    from types import SimpleNamespace
+
+    from lgvi_jax import sweep
+
+    cpu, gpu = (SimpleNamespace(platform=p) for p in ("cpu", "gpu"))
+    scalar = sweep.sweep_method("car-pendulum", "hamel")
+    arrays = sweep.sweep_method("car-pendulum", "hamel", scalar=False)
+    assert sweep._block(scalar, (cpu,), 4096) == sweep.SCALAR_BLOCK
+    assert sweep._block(arrays, (cpu, cpu), 4096) == sweep.BLOCK
+    assert sweep._block(scalar, (gpu,), 524288) == 524288
+    assert sweep._block(arrays, (gpu, gpu), 1001) == 501  # the share of each device
+
+
 @pytest.mark.parametrize("name", ["lgvi"])
 def test_batch_equals_loop_of_single_runs(car, name):
     """The vmapped and sharded batch reproduces each single-trajectory run."""

@@ -88,10 +88,26 @@ def test_user_options_are_kept():
     result = json.loads(out.stdout)
     assert result["started"] is False  # every case was configured as at import
     got = [flags.split() for flags in result["flags"]]
-    assert got[0] == [mine, _xla.EMITTER_FLAG]
+    assert got[0] == [mine, *_xla.flags()[1:]]  # the emitter flag where jaxlib knows it
     assert got[1] == [emitters, _xla.flag()]
     assert got[2] == [other, *_xla.flags()]
     assert result["flags"][3].strip() == both
+
+
+@pytest.mark.parametrize("version, known", [("0.4.30", True), ("0.10.2", True),
+                                            ("0.11.0", False), ("0.11.2", False),
+                                            ("1.0.0", False), ("unknown", False)])
+def test_the_emitter_flag_only_for_a_jaxlib_that_knows_it(monkeypatch, version, known):
+    """jaxlib 0.11 aborts on the retired ``xla_cpu_use_fusion_emitters`` flag (seen on a GPU
+    machine with jaxlib 0.11.2: every computation of the process died), so the import adds
+    it only for older versions; the small-loop setting stays for all."""
+    from importlib import metadata
+
+    real = metadata.version
+    monkeypatch.setattr(metadata, "version",
+                        lambda name: version if name == "jaxlib" else real(name))
+    assert (_xla.EMITTER_FLAG in _xla.flags()) is known
+    assert _xla.flags()[0] == _xla.flag()
 
 
 def test_too_late_warns_and_says_how_to_fix():
