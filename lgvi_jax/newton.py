@@ -61,6 +61,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.ad_checkpoint import checkpoint_name
 from jax.flatten_util import ravel_pytree
 
 from . import scalarize as sc
@@ -626,6 +627,12 @@ def _newton_core(fn, solver, y0, args, jac0):
     return _iterate(f, y0, solver, jac0)
 
 
+#: The name of a solve's outputs inside its differentiation rule
+#: (``jax.ad_checkpoint.checkpoint_name``): a ``jax.checkpoint`` policy that saves them
+#: (``simulate``'s ``checkpoint_every``) keeps the backward pass from solving again.
+SOLUTION_NAME = "lgvi_jax.newton_solution"
+
+
 def _solution_tangents(y, result, k, res, y_dot):
     """The primal and tangent outputs of a solve's JVP rule: only the root has a tangent."""
     float0 = jax.dtypes.float0
@@ -637,12 +644,17 @@ def _solution_tangents(y, result, k, res, y_dot):
     )
 
 
+def _named(outputs):
+    """The solve's outputs named :data:`SOLUTION_NAME` (identity otherwise)."""
+    return tuple(checkpoint_name(x, SOLUTION_NAME) for x in outputs)
+
+
 @_newton_core.defjvp
 def _newton_core_jvp(fn, solver, primals, tangents):
     # The root does not depend on y0 or on the chord matrix jac0: only args' tangents count.
     y0, args, jac0 = primals
     _, args_dot, _ = tangents
-    y, result, k, res = _newton_core(fn, solver, y0, args, jac0)
+    y, result, k, res = _named(_newton_core(fn, solver, y0, args, jac0))
     # Implicit function theorem at the solution: J dy = -dF/da . da
     J = jax.jacfwd(lambda z: fn(z, args))(y)
     _, dF = jax.jvp(lambda a: fn(y, a), (args,), (args_dot,))
@@ -893,7 +905,7 @@ def _scalar_core_jvp(fn, solver, primals, tangents):
     # The implicit function theorem, as in _newton_core_jvp, on scalars: J ẏ = −∂F/∂a ȧ.
     y0, args = primals
     _, args_dot = tangents
-    y, result, k, res = _scalar_core(fn, solver, y0, args)
+    y, result, k, res = _named(_scalar_core(fn, solver, y0, args))
     jac_fn = _scalar_jacobian(fn, y, args)
 
     def dF(y, a, a_dot):

@@ -23,7 +23,11 @@ segments of ``K`` steps, each wrapped in ``jax.checkpoint``: the backward pass k
 the state at the start of each segment and recomputes one segment's steps at a time, so
 memory grows like ``n_steps/K + K`` (optimal near ``K = sqrt(n_steps)``) at the price of a
 second forward pass (binomial checkpointing with one level; Griewank & Walther,
-*Evaluating Derivatives*, SIAM 2008, ch. 12). The values are identical.
+*Evaluating Derivatives*, SIAM 2008, ch. 12). The values are identical. The second
+forward pass need not solve the implicit steps again: their Newton solutions (named
+``newton.SOLUTION_NAME`` in the solver's differentiation rule) are kept from the first
+pass by a ``jax.checkpoint`` policy, a few numbers per step (``save_solutions=False``
+turns it off); the backward pass then only forms each step's Jacobian at its solution.
 ``experiments/bench_gradients.py`` measures it.
 """
 
@@ -40,7 +44,7 @@ import numpy as np
 
 from ._checks import is_concrete
 from .integrators.base import AbstractIntegrator
-from .newton import RESULTS
+from .newton import RESULTS, SOLUTION_NAME
 
 __all__ = ["IntegrationError", "Trajectory", "final_state", "guarded_step", "simulate",
            "simulate_timed"]
@@ -170,7 +174,7 @@ def _record(model, state):
 
 @eqx.filter_jit
 def _rollout(model, method, state0, dt, t0, n_steps: int, save_every: int,
-             checkpoint_every: int | None = None) -> Trajectory:
+             checkpoint_every: int | None = None, save_solutions: bool = True) -> Trajectory:
     n_blocks = n_steps // save_every
     int0 = jnp.asarray(0, jnp.int32)
 
@@ -207,7 +211,13 @@ def _rollout(model, method, state0, dt, t0, n_steps: int, save_every: int,
     else:
         blocks_per_segment = checkpoint_every // save_every
 
-        @functools.partial(jax.checkpoint, prevent_cse=False)
+        # The solves' outputs, named in their differentiation rules, are kept (a few
+        # numbers per step) so that the backward pass recomputes the steps but not their
+        # Newton iterations.
+        policy = (jax.checkpoint_policies.save_only_these_names(SOLUTION_NAME)
+                  if save_solutions else None)
+
+        @functools.partial(jax.checkpoint, prevent_cse=False, policy=policy)
         def one_segment(carry, _):
             return jax.lax.scan(one_block, carry, None, length=blocks_per_segment)
 
@@ -289,6 +299,7 @@ def simulate(
     t0: float | jax.Array = 0.0,
     throw: bool = False,
     checkpoint_every: int | None = None,
+    save_solutions: bool = True,
 ) -> Trajectory:
     """Integrate ``model`` with ``method`` for ``n_steps`` steps of size ``dt``.
 
@@ -307,6 +318,11 @@ def simulate(
             ``checkpoint_every`` steps and recomputes in between (module docstring): memory
             ``~ n_steps/K + K`` instead of ``~ n_steps``. A multiple of ``save_every`` that
             divides ``n_steps``. No effect on the values or on forward mode.
+        save_solutions: with ``checkpoint_every``, also keep every step's Newton solution
+            and result code (the implicit methods' unknowns: 5 numbers per step for the
+            car-pendulum, against 16 for its state), so that the backward pass recomputes
+            the steps without solving them again (module docstring). ``False``: memory
+            ``~ n_steps/K + K`` states exactly.
 
     Returns:
         A :class:`Trajectory` with ``n_steps // save_every + 1`` saved states.
@@ -317,7 +333,8 @@ def simulate(
     """
     args = _prepare(model, method, state0, dt, n_steps, save_every, t0)
     checkpoint_every = _check_checkpoint(checkpoint_every, args[5], args[6])
-    traj = _rollout(*args, checkpoint_every=checkpoint_every)
+    traj = _rollout(*args, checkpoint_every=checkpoint_every,
+                    save_solutions=bool(save_solutions))
     if throw:
         traj = traj.raise_if_failed()
     return traj
