@@ -54,6 +54,7 @@ from __future__ import annotations
 
 import enum
 import functools
+import weakref
 from collections.abc import Callable
 from typing import Any
 
@@ -776,6 +777,31 @@ def _rows(obj) -> list[list[Any]]:
     return [list(obj[i]) for i in range(obj.shape[0])]
 
 
+#: The scalar programs built for each residual function (weakly keyed: an entry lives as
+#: long as the function), per shapes and dtypes of its arguments. One differentiated solve
+#: builds the residual's Jacobian three times otherwise (the solve, the primal solve
+#: of its JVP rule, the Jacobian at the solution).
+_PROGRAMS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def _memo(kind: str, fn, y0, args, build):
+    """``build()``, remembered per ``(fn, kind, argument shapes and dtypes)``: the
+    programs depend on nothing else, since ``fn`` may not close over traced values (those
+    that do, with programs that take traced constants, are built afresh every time)."""
+    leaves, tree = jax.tree.flatten((y0, args))
+    key = (kind, tree, tuple((jnp.shape(x), jnp.result_type(x)) for x in leaves))
+    try:
+        per_fn = _PROGRAMS.setdefault(fn, {})
+    except TypeError:  # not weakly referable
+        return build()
+    if key not in per_fn:
+        out = build()
+        if any(f.traced_consts for f in (out if isinstance(out, tuple) else (out,))):
+            return out
+        per_fn[key] = out
+    return per_fn[key]
+
+
 def _scalar_jacobian(fn, y0, args) -> sc.ScalarFunction:
     """The Jacobian of ``fn`` in ``y`` as a scalar program: forward mode (one tangent per
     unknown) or reverse mode (one cotangent per residual), whichever leaves fewer
@@ -783,14 +809,18 @@ def _scalar_jacobian(fn, y0, args) -> sc.ScalarFunction:
     floating-point sums; which mode is smaller depends on the model and the method (the
     car-pendulum's ``lgvi``: reverse 1082 against forward 1318 operations; ``hamel``:
     forward 1239 against 1702)."""
-    forward = sc.ScalarFunction(jax.jacfwd(fn), y0, args)
-    reverse = sc.ScalarFunction(jax.jacrev(fn), y0, args)
-    return reverse if reverse.size < forward.size else forward
+    def build():
+        forward = sc.ScalarFunction(jax.jacfwd(fn), y0, args)
+        reverse = sc.ScalarFunction(jax.jacrev(fn), y0, args)
+        return reverse if reverse.size < forward.size else forward
+
+    return _memo("jacobian", fn, y0, args, build)
 
 
 def _scalar_programs(fn, y0, args):
     """The residual and its Jacobian as scalar programs (traced once per solve)."""
-    return sc.ScalarFunction(fn, y0, args), _scalar_jacobian(fn, y0, args)
+    residual = _memo("residual", fn, y0, args, lambda: sc.ScalarFunction(fn, y0, args))
+    return residual, _scalar_jacobian(fn, y0, args)
 
 
 def _iterate_scalar(programs, y0, args, solver: Newton, batched: bool = False):

@@ -270,6 +270,41 @@ def test_scalar_newton_gradients_equal_finite_differences():
     np.testing.assert_allclose(g_scalar[1], fd, rtol=1e-7, atol=1e-9)
 
 
+def test_a_differentiated_solve_builds_its_programs_once(monkeypatch):
+    """The solve inside the JVP rule and the Jacobian at its solution share the
+    residual's scalar programs (``newton._memo``): the Jacobian's two modes are traced
+    once instead of twice (three times with checkpoints, whose first pass solves too), and
+    the lowered gradient is the same program, text for text, as with every program built
+    afresh."""
+    import lgvi_jax.newton as newton_module
+
+    n = 4
+    M = 4.0 * jnp.eye(n) + 0.5 * _rand(7, (n, n))
+    b = _rand(8, (n,))
+
+    def loss(M, b):
+        return jnp.sum(newton_solve(_system, jnp.zeros(n), (M, b),
+                                    Newton(chord_steps=8, scalar=True)).value ** 2)
+
+    built = []
+    original = ScalarFunction.__init__
+
+    def counting(self, fn, *example):
+        original(self, fn, *example)
+        built.append(self.size)
+
+    monkeypatch.setattr(ScalarFunction, "__init__", counting)
+    shared = jax.jit(jax.grad(loss)).lower(M, b).as_text()
+    n_shared = len(built)
+    monkeypatch.setattr(newton_module, "_memo", lambda kind, fn, y0, args, build: build())
+    fresh = jax.jit(jax.grad(loss)).lower(M, b).as_text()
+    n_fresh = len(built) - n_shared
+    # the residual, both Jacobian modes and the tangent's program; afresh, both modes
+    # once more for the Jacobian at the solution
+    assert (n_shared, n_fresh) == (4, 6)
+    assert shared == fresh
+
+
 # --- the Lie-group engine on scalars ----------------------------------------------------
 
 
