@@ -175,13 +175,22 @@ def _load_or_export(key: str, flat: Callable, leaves: Sequence) -> Callable:
     from jax import export
 
     path = _traces / f"{key}.jaxexport"
+    refused = _traces / f"{key}.noexport"
+    if refused.exists():  # this program could not be exported before: do not try again
+        return jax.jit(flat)
     try:
         exported = export.deserialize(bytearray(path.read_bytes()))
     except Exception:  # missing, damaged or from an incompatible version: trace again
         try:
             exported = export.export(jax.jit(flat))(*leaves)
             data = exported.serialize()
-        except Exception:  # not exportable (a custom call without a stable ABI, ...)
+        except Exception:  # not exportable (a custom call without a stable ABI, an
+            # unregistered pytree node, ...): remembered, so that runs do not retry
+            try:
+                _traces.mkdir(parents=True, exist_ok=True)
+                refused.touch()
+            except OSError:
+                pass
             return jax.jit(flat)
         try:
             from ._io import atomic_write_bytes

@@ -270,8 +270,15 @@ def initial_conditions(model, state0, n: int, perturb: float, seed: int,
     from . import _cache
 
     indices = np.arange(start, start + n, dtype=np.uint32)
-    return _cache.call("sweep.initial_conditions", _initial_conditions, model, state0,
-                       np.float64(perturb), np.uint32(seed % 2**32), indices)
+    # The cached program returns the states' leaves: jax.export serialises only the
+    # pytree nodes registered with it, and a state class is not (every run traced again).
+    leaves = _cache.call("sweep.initial_conditions", _initial_condition_leaves, model,
+                         state0, np.float64(perturb), np.uint32(seed % 2**32), indices)
+    return jax.tree.unflatten(jax.tree.structure(state0), leaves)
+
+
+def _initial_condition_leaves(model, state0, eps, seed, indices):
+    return jax.tree.leaves(_initial_conditions(model, state0, eps, seed, indices))
 
 
 # ---------------------------------------------------------------------------------------
