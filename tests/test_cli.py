@@ -160,14 +160,17 @@ def test_info_lists_methods(capsys):
 
 def test_console_script_is_declared_and_runs(tmp_path, capsys):
     scripts = {ep.name: ep.value for ep in entry_points(group="console_scripts")}
-    assert scripts.get("lgvi-jax") == "lgvi_jax.cli:main"
+    assert scripts.get("lgvi-jax") == "lgvi_jax.cli:run"
     out = tmp_path / "v.npz"
     proc = subprocess.run(
         [sys.executable, "-m", "lgvi_jax.cli", "simulate", "oscillator", "--method", "verlet",
          "--dt", "0.1", "--t-final", "1", "--out", str(out), "--json"],
         capture_output=True, text=True, check=False, timeout=300)
+    # (the child ends with os._exit, skipping the interpreter's teardown: what it printed
+    # and wrote must be complete all the same)
     assert proc.returncode == 0, proc.stderr
     assert json.loads(proc.stdout)["method"] == "verlet"
+    assert np.load(out)["q"].shape[0] == 11
     # A usage error: exit status 2 and one message, no traceback (the status is main's
     # return value, which the child above passes to the shell; run here, not in a second
     # child, which would cost another import of JAX).
