@@ -226,6 +226,36 @@ def test_bench_markdown_reports_the_measured_values(tmp_path):
     assert text.endswith("benchmark process: 512 MB.\n")
 
 
+def test_accelerator_bench_reports_the_sweeps_work(tmp_path, capsys):
+    """experiments/bench_accelerator.py (the GPU measurement; here on the CPU, tiny): one
+    row per system, method, engine and batch, written as it goes, each with the same
+    worst energy error and Newton iterations as the sweep's own batched run of those
+    states, and a positive throughput."""
+    from lgvi_jax.experiments import bench_accelerator
+
+    from lgvi_jax.scenes import get_scene
+    from lgvi_jax.sweep import initial_conditions, run_batch, sweep_method
+
+    out = tmp_path / "acc"
+    code = bench_accelerator.main(["--out", str(out), "--systems", "free-rigid-body",
+                                   "--methods", "lgvi", "--engines", "scalar",
+                                   "--batches", "2", "--steps", "20", "--repeats", "1"])
+    assert code == 0
+    report = json.loads((out / "accelerator.json").read_text())
+    assert report["platform"] == "cpu" and len(report["rows"]) == 1
+    row = report["rows"][0]
+    assert (row["system"], row["method"], row["engine"], row["batch"], row["steps"]) == (
+        "free-rigid-body", "lgvi", "scalar", 2, 20)
+    assert row["failed"] == 0 and row["steps_per_s"] > 0 and row["compile_s"] > 0
+    model, s0 = get_scene("free-rigid-body").build()
+    states = initial_conditions(model, s0, 2, bench_accelerator.PERTURB, bench_accelerator.SEED)
+    ref = run_batch(model, sweep_method("free-rigid-body", "lgvi"), states,
+                    bench_accelerator.DT, 20)
+    assert row["energy_error_max"] == float(np.max(ref["energy_error_max"]))
+    assert row["newton_mean"] == float(np.mean(ref["newton_mean"]))
+    assert json.loads(capsys.readouterr().out.splitlines()[-1]) == row
+
+
 def test_bench_command_quick_run(tmp_path, capsys):
     """``lgvi-jax bench --quick`` end to end on one method and one system, few steps and a
     small batch, its throughput part (Numba's compilation included): on the car-pendulum
