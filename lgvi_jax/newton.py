@@ -111,6 +111,9 @@ class NewtonError(RuntimeError):
     """Raised by ``throw=True`` when a Newton solve (or a step of a rollout) fails."""
 
 
+_JACOBIAN_MODES = ("auto", "forward", "reverse")
+
+
 class Newton(eqx.Module):
     """Newton's method with an autodiff Jacobian.
 
@@ -148,6 +151,12 @@ class Newton(eqx.Module):
             structure of arrays under ``vmap``). Same iterates as the array form to the
             order of floating-point sums, same implicit derivatives. Plain Newton or
             ``chord_steps``; no given chord matrix.
+        scalar_jacobian: the autodiff mode of the Jacobian program on scalars:
+            ``"forward"`` (``jacfwd``), ``"reverse"`` (``jacrev``) or ``"auto"`` (default:
+            both traced, the one with fewer operations kept, at the price of tracing the
+            other: 0.1-0.6 s per compilation). The Lie-group VIs name theirs
+            (:class:`~lgvi_jax.integrators.lie.AbstractLieVI`). Same matrix to the order
+            of floating-point sums.
     """
 
     rtol: float = 1e-12
@@ -160,6 +169,7 @@ class Newton(eqx.Module):
     unroll: int = eqx.field(static=True, default=0)
     adjoint: str = eqx.field(static=True, default="implicit")
     scalar: bool = eqx.field(static=True, default=False)
+    scalar_jacobian: str = eqx.field(static=True, default="auto")
 
     @property
     def scalar_compatible(self) -> bool:
@@ -171,6 +181,9 @@ class Newton(eqx.Module):
         if self.scalar and not self.scalar_compatible:
             raise ValueError("Newton: scalar=True supports Newton and chord_steps (no chord, "
                              "broyden, unroll or unrolled adjoint)")
+        if self.scalar_jacobian not in _JACOBIAN_MODES:
+            raise ValueError(f"Newton: scalar_jacobian must be one of {_JACOBIAN_MODES}, got "
+                             f"{self.scalar_jacobian!r}")
         if self.adjoint not in ("implicit", "unrolled"):
             raise ValueError(
                 f"Newton: adjoint must be 'implicit' or 'unrolled', got {self.adjoint!r}"
@@ -802,25 +815,30 @@ def _memo(kind: str, fn, y0, args, build):
     return per_fn[key]
 
 
-def _scalar_jacobian(fn, y0, args) -> sc.ScalarFunction:
+def _scalar_jacobian(fn, y0, args, mode: str = "auto") -> sc.ScalarFunction:
     """The Jacobian of ``fn`` in ``y`` as a scalar program: forward mode (one tangent per
-    unknown) or reverse mode (one cotangent per residual), whichever leaves fewer
-    operations after folding and merging. The same matrix up to the order of the
-    floating-point sums; which mode is smaller depends on the model and the method (the
+    unknown), reverse mode (one cotangent per residual) or, with ``mode="auto"``, whichever
+    leaves fewer operations after folding and merging. The same matrix up to the order of
+    the floating-point sums; which mode is smaller depends on the model and the method (the
     car-pendulum's ``lgvi``: reverse 1082 against forward 1318 operations; ``hamel``:
     forward 1239 against 1702)."""
     def build():
+        if mode == "forward":
+            return sc.ScalarFunction(jax.jacfwd(fn), y0, args)
+        if mode == "reverse":
+            return sc.ScalarFunction(jax.jacrev(fn), y0, args)
         forward = sc.ScalarFunction(jax.jacfwd(fn), y0, args)
         reverse = sc.ScalarFunction(jax.jacrev(fn), y0, args)
         return reverse if reverse.size < forward.size else forward
 
-    return _memo("jacobian", fn, y0, args, build)
+    return _memo(f"jacobian:{mode}", fn, y0, args, build)
 
 
-def _scalar_programs(fn, y0, args):
-    """The residual and its Jacobian as scalar programs (traced once per solve)."""
+def _scalar_programs(fn, y0, args, mode: str = "auto"):
+    """The residual and its Jacobian (``mode``: :func:`_scalar_jacobian`) as scalar
+    programs (traced once per solve)."""
     residual = _memo("residual", fn, y0, args, lambda: sc.ScalarFunction(fn, y0, args))
-    return residual, _scalar_jacobian(fn, y0, args)
+    return residual, _scalar_jacobian(fn, y0, args, mode)
 
 
 def _iterate_scalar(programs, y0, args, solver: Newton, batched: bool = False):
@@ -906,7 +924,7 @@ def _scalar_core(fn, solver, y0, args):
     # fusions recompute them (car-pendulum hamel, `simulate` of 20000 steps: 2.0e5 steps/s
     # and 9-10 s to compile, materialised 6-7e5 and 5 s). The batch's program is traced once
     # (custom_vmap): JAX batches a loop's body until its carry settles.
-    programs = _scalar_programs(fn, y0, args)
+    programs = _scalar_programs(fn, y0, args, solver.scalar_jacobian)
     batched_jaxprs = {}
 
     @jax.custom_batching.custom_vmap
@@ -936,7 +954,7 @@ def _scalar_core_jvp(fn, solver, primals, tangents):
     y0, args = primals
     _, args_dot = tangents
     y, result, k, res = _named(_scalar_core(fn, solver, y0, args))
-    jac_fn = _scalar_jacobian(fn, y, args)
+    jac_fn = _scalar_jacobian(fn, y, args, solver.scalar_jacobian)
 
     def dF(y, a, a_dot):
         return jax.jvp(lambda b: fn(y, b), (a,), (a_dot,))[1]
