@@ -39,11 +39,9 @@ __all__ = ["cache_dir", "call", "enable"]
 ENV = "LGVI_JAX_CACHE_DIR"
 #: Size limit of the folder, bytes (least recently used entries are evicted beyond it).
 MAX_SIZE = 2 * 1024**3
-#: Programs that compile faster than this are not stored. 0: every program, the small
-#: eager ones of a command's start (parameter conversions, momenta, resharding: 10-70 ms
-#: each to compile) too, since reading an entry costs less (warm car-pendulum sweep,
-#: medians of 8 alternated runs: 0.08 s sooner to the first batch than with 0.2 s).
-MIN_COMPILE_S = 0.0
+#: Programs that compile faster than this are not stored (their entry would cost more to
+#: read and write than to recompile).
+MIN_COMPILE_S = 0.2
 #: Size limit of the traced programs (``traces`` subfolder), bytes; the least recently
 #: written are removed beyond it.
 MAX_TRACES_SIZE = 256 * 1024**2
