@@ -17,7 +17,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import sys
 import time
 from pathlib import Path
 
@@ -54,25 +53,23 @@ def _bench(model, method, s0, steps: int, batch: int, repeats: int) -> dict:
 
 
 def _numba_rows(steps: int, batch: int, methods) -> list[dict]:
-    sys.path.insert(0, str(Path(__file__).resolve().parent))
-    import numba
-    import numba_lgvi as nb
+    from lgvi_jax.experiments.bench_throughput import _load_numba, _numpy_states
 
+    nb, used = _load_numba(methods, print)  # compiled once, before the timed runs
+    if nb is None:
+        return []
     model, s0 = lj.scenes.get_scene("car-pendulum").build()
     params = nb.params_from_model(model)
-    states = initial_conditions(model, s0, batch, PERTURB, SEED)
-    arrays = [np.ascontiguousarray(np.asarray(x)) for x in (states.R, states.mu, states.q,
-                                                           states.p)]
+    arrays = _numpy_states(initial_conditions(model, s0, batch, PERTURB, SEED))
     rows = []
     for name in methods:
-        nb.sweep_metrics(name, *[a[:2] for a in arrays], DT, 2, params)  # compile
         times = []
         for _ in range(2):
             t0 = time.perf_counter()
             nb.sweep_metrics(name, *arrays, DT, steps, params)
             times.append(time.perf_counter() - t0)
         rows.append({"system": "car-pendulum", "method": name, "engine": "numba",
-                     "device": f"cpu x {numba.get_num_threads()} threads", "batch": batch,
+                     "device": f"cpu x {used['threads']} threads", "batch": batch,
                      "steps": steps, "run_s": min(times),
                      "steps_per_s": batch * steps / min(times)})
     return rows

@@ -809,7 +809,7 @@ def _memo(kind: str, fn, y0, args, build):
         return build()
     if key not in per_fn:
         out = build()
-        if any(f.traced_consts for f in (out if isinstance(out, tuple) else (out,))):
+        if out.traced_consts:
             return out
         per_fn[key] = out
     return per_fn[key]
