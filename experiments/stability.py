@@ -62,7 +62,7 @@ from lgvi_jax.models import CarPendulum, HarmonicOscillator, PhaseState
 from lgvi_jax.newton import RESULTS
 from lgvi_jax.plotting import figure, method_style, positive, save
 from lgvi_jax.scenes import resolve_methods
-from lgvi_jax.simulate import guarded_step
+from lgvi_jax.simulate import guarded_step_with
 
 #: Methods probed, by scene name; names that do not resolve (not in this checkout) are
 #: skipped and listed in the summary.
@@ -117,20 +117,21 @@ def _probe(model, method, state0, h, n_steps, threshold):
     scale = jnp.where(e0 != 0, jnp.abs(e0), 1.0)
 
     def cond(c):
-        k, _, code, _, _, emax = c
+        k, _, code, _, _, _, emax = c
         return (k < n_steps) & (code == RESULTS.successful) & (emax <= threshold)
 
     def body(c):
-        k, state, code, failed_step, failed_res, emax = c
-        state, code, failed_step, failed_res, _ = guarded_step(
-            model, method, state, h, k, code, failed_step, failed_res)
+        k, state, code, failed_step, failed_res, ss, emax = c
+        state, code, failed_step, failed_res, _, ss = guarded_step_with(
+            model, method, state, ss, h, k, code, failed_step, failed_res)
         rel = jnp.abs(model.energy(state) - e0) / scale
         emax = jnp.where(jnp.isfinite(rel), jnp.maximum(emax, rel), emax)
-        return k + 1, state, code, failed_step, failed_res, emax
+        return k + 1, state, code, failed_step, failed_res, ss, emax
 
     init = (jnp.asarray(0, jnp.int32), state0, jnp.asarray(RESULTS.successful, jnp.int32),
-            jnp.asarray(-1, jnp.int32), jnp.zeros((), h.dtype), jnp.zeros((), h.dtype))
-    k, _, code, failed_step, _, emax = jax.lax.while_loop(cond, body, init)
+            jnp.asarray(-1, jnp.int32), jnp.zeros((), h.dtype),
+            method.init_solver_state(model, state0, h), jnp.zeros((), h.dtype))
+    k, _, code, failed_step, _, _, emax = jax.lax.while_loop(cond, body, init)
     return code, failed_step, emax, k
 
 

@@ -46,8 +46,8 @@ from ._checks import is_concrete
 from .integrators.base import AbstractIntegrator
 from .newton import RESULTS, SOLUTION_NAME
 
-__all__ = ["IntegrationError", "Trajectory", "final_state", "guarded_step", "simulate",
-           "simulate_timed"]
+__all__ = ["IntegrationError", "Trajectory", "final_state", "guarded_step", "guarded_step_with",
+           "simulate", "simulate_timed"]
 
 
 class IntegrationError(RuntimeError):
@@ -154,6 +154,20 @@ def guarded_step(model, method, state, dt, k, code, failed_step, failed_res):
     failed_res, info)``.
     """
     new_state, info = method.step(model, state, dt)
+    return _guard(new_state, info, k, code, failed_step, failed_res)
+
+
+def guarded_step_with(model, method, state, solver_state, dt, k, code, failed_step,
+                      failed_res):
+    """:func:`guarded_step` threading the method's solver state
+    (:meth:`~lgvi_jax.integrators.AbstractIntegrator.init_solver_state`, then this
+    function's last output). Returns ``(new_state, code, failed_step, failed_res, info,
+    solver_state)``."""
+    new_state, info, solver_state = method.step_with(model, state, dt, solver_state)
+    return (*_guard(new_state, info, k, code, failed_step, failed_res), solver_state)
+
+
+def _guard(new_state, info, k, code, failed_step, failed_res):
     step_code = jnp.where(
         info.result != RESULTS.successful,
         info.result,
@@ -179,23 +193,21 @@ def _rollout(model, method, state0, dt, t0, n_steps: int, save_every: int,
     int0 = jnp.asarray(0, jnp.int32)
 
     def one_step(carry, _):
-        state, k, code, failed_step, failed_res, it_sum, it_max = carry
+        state, k, code, failed_step, failed_res, ss, it_sum, it_max = carry
         running = code == RESULTS.successful
-        state, code, failed_step, failed_res, info = guarded_step(
-            model, method, state, dt, k, code, failed_step, failed_res
+        state, code, failed_step, failed_res, info, ss = guarded_step_with(
+            model, method, state, ss, dt, k, code, failed_step, failed_res
         )
         iters = jnp.where(running, info.newton_steps, 0).astype(jnp.int32)
-        carry = (state, k + 1, code, failed_step, failed_res, it_sum + iters,
+        carry = (state, k + 1, code, failed_step, failed_res, ss, it_sum + iters,
                  jnp.maximum(it_max, iters))
         return carry, None
 
     def one_block(carry, _):
-        state, k, code, failed_step, failed_res = carry
-        inner = (state, k, code, failed_step, failed_res, int0, int0)
-        inner, _ = jax.lax.scan(one_step, inner, None, length=save_every)
-        state, k, code, failed_step, failed_res, it_sum, it_max = inner
-        saved = (*_record(model, state), it_sum, it_max)
-        return (state, k, code, failed_step, failed_res), saved
+        inner, _ = jax.lax.scan(one_step, (*carry, int0, int0), None, length=save_every)
+        *carry, it_sum, it_max = inner
+        saved = (*_record(model, carry[0]), it_sum, it_max)
+        return tuple(carry), saved
 
     init = (
         state0,
@@ -203,9 +215,10 @@ def _rollout(model, method, state0, dt, t0, n_steps: int, save_every: int,
         jnp.asarray(RESULTS.successful, jnp.int32),
         jnp.asarray(-1, jnp.int32),
         jnp.zeros((), dt.dtype),
+        method.init_solver_state(model, state0, dt),
     )
     if checkpoint_every is None:
-        (_, _, code, failed_step, failed_res), saved = jax.lax.scan(
+        (_, _, code, failed_step, failed_res, _), saved = jax.lax.scan(
             one_block, init, None, length=n_blocks
         )
     else:
@@ -221,7 +234,7 @@ def _rollout(model, method, state0, dt, t0, n_steps: int, save_every: int,
         def one_segment(carry, _):
             return jax.lax.scan(one_block, carry, None, length=blocks_per_segment)
 
-        (_, _, code, failed_step, failed_res), saved = jax.lax.scan(
+        (_, _, code, failed_step, failed_res, _), saved = jax.lax.scan(
             one_segment, init, None, length=n_steps // checkpoint_every
         )
         saved = jax.tree.map(lambda x: x.reshape((n_blocks, *x.shape[2:])), saved)
@@ -372,15 +385,15 @@ def simulate_timed(
 @eqx.filter_jit
 def _final_state(model, method, state0, dt, n_steps):
     def body(k, carry):
-        state, code, failed_step, failed_res = carry
-        state, code, failed_step, failed_res, _ = guarded_step(
-            model, method, state, dt, k, code, failed_step, failed_res
+        state, code, failed_step, failed_res, ss = carry
+        state, code, failed_step, failed_res, _, ss = guarded_step_with(
+            model, method, state, ss, dt, k, code, failed_step, failed_res
         )
-        return state, code, failed_step, failed_res
+        return state, code, failed_step, failed_res, ss
 
     init = (state0, jnp.asarray(RESULTS.successful, jnp.int32), jnp.asarray(-1, jnp.int32),
-            jnp.zeros((), dt.dtype))
-    state, code, _, _ = jax.lax.fori_loop(jnp.asarray(0, jnp.int32), n_steps, body, init)
+            jnp.zeros((), dt.dtype), method.init_solver_state(model, state0, dt))
+    state, code, _, _, _ = jax.lax.fori_loop(jnp.asarray(0, jnp.int32), n_steps, body, init)
     return state, code
 
 

@@ -75,7 +75,7 @@ from ._io import atomic_open, atomic_write, atomic_write_json, atomic_write_text
 from .newton import RESULTS
 from .progress import Progress
 from .scalarize import on_scalars
-from .simulate import guarded_step
+from .simulate import guarded_step_with
 
 __all__ = [
     "FORMAT",
@@ -328,10 +328,10 @@ def _sweep_one(model, method, state0, dt, n_steps, sample_every):
     int0 = jnp.asarray(0, jnp.int32)
 
     def body(k, carry):
-        state, code, failed_step, failed_res, it_sum, it_max, maxima, last = carry
+        state, code, failed_step, failed_res, ss, it_sum, it_max, maxima, last = carry
         running = code == RESULTS.successful
-        state, code, failed_step, failed_res, info = guarded_step(
-            model, method, state, dt, k, code, failed_step, failed_res
+        state, code, failed_step, failed_res, info, ss = guarded_step_with(
+            model, method, state, ss, dt, k, code, failed_step, failed_res
         )
         iters = jnp.where(running, info.newton_steps, 0).astype(jnp.int32)
         ok = code == RESULTS.successful
@@ -345,13 +345,14 @@ def _sweep_one(model, method, state0, dt, n_steps, sample_every):
             return maxima, last
 
         maxima, last = jax.lax.cond(sample, update, lambda a: a, (maxima, last))
-        return (state, code, failed_step, failed_res, it_sum + iters,
+        return (state, code, failed_step, failed_res, ss, it_sum + iters,
                 jnp.maximum(it_max, iters), maxima, last)
 
     init = (state0, jnp.asarray(RESULTS.successful, jnp.int32), jnp.asarray(-1, jnp.int32),
-            jnp.zeros((), ftype), int0, int0, nan_metrics, zero_metrics)
+            jnp.zeros((), ftype), method.init_solver_state(model, state0, dt), int0, int0,
+            nan_metrics, zero_metrics)
     carry = jax.lax.fori_loop(int0, n_steps, body, init)
-    _, code, failed_step, _, it_sum, it_max, maxima, last = carry
+    _, code, failed_step, _, _, it_sum, it_max, maxima, last = carry
     steps_done = jnp.where(failed_step >= 0, failed_step + 1, n_steps)
     out = {
         "energy_error_max": maxima["energy_error"],
@@ -373,15 +374,15 @@ def _final_one(model, method, state0, dt, n_steps, sample_every):
     del sample_every
 
     def body(k, carry):
-        state, code, failed_step, failed_res = carry
-        state, code, failed_step, failed_res, _ = guarded_step(
-            model, method, state, dt, k, code, failed_step, failed_res)
-        return state, code, failed_step, failed_res
+        state, code, failed_step, failed_res, ss = carry
+        state, code, failed_step, failed_res, _, ss = guarded_step_with(
+            model, method, state, ss, dt, k, code, failed_step, failed_res)
+        return state, code, failed_step, failed_res, ss
 
     init = (state0, jnp.asarray(RESULTS.successful, jnp.int32), jnp.asarray(-1, jnp.int32),
-            jnp.zeros((), dt.dtype))
-    state, code, failed_step, _ = jax.lax.fori_loop(jnp.asarray(0, jnp.int32), n_steps,
-                                                    body, init)
+            jnp.zeros((), dt.dtype), method.init_solver_state(model, state0, dt))
+    state, code, failed_step, _, _ = jax.lax.fori_loop(jnp.asarray(0, jnp.int32), n_steps,
+                                                       body, init)
     return {"state": state, "result": code, "failed_step": failed_step}
 
 

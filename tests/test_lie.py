@@ -443,6 +443,41 @@ def test_hamel_options_validated():
         HamelVI(variation="approximate")
 
 
+def test_extrapolated_guess_gives_the_same_solutions_in_fewer_iterations(long_runs):
+    """A rollout starts each Newton solve from the extrapolation 2 s_{k-1} - s_{k-2} of the
+    last two solutions (``step_with``, an O(h²) guess) instead of the current velocities
+    (``step``, O(h)): the same states to the solver's tolerance over 2000 steps of the
+    moving cart, in fewer iterations (3 against 4 at h = 5e-3)."""
+    model, runs = long_runs
+    method = RIGID_METHODS["hamel"]()
+    n, every = 2000, 100
+
+    @jax.jit
+    def plain(state):
+        def block(s, _):
+            def one(c, _):
+                s, its = c
+                s, info = method.step(model, s, 5e-3)
+                return (s, its + info.newton_steps), None
+
+            (s, its), _ = jax.lax.scan(one, (s, 0), None, length=every)
+            return s, (s, its)
+
+        return jax.lax.scan(block, state, None, length=n // every)[1]
+
+    states, its = plain(model.default_state())
+    full = runs["hamel"]
+    extrapolated = jax.tree.map(lambda x: x[every // EVERY : n // EVERY + 1 : every // EVERY],
+                                full.state)
+    for x, y in zip(jax.tree.leaves(states), jax.tree.leaves(extrapolated), strict=True):
+        # Two solves of the same equations, each stopped at an update <= 1e-12 (1 + |ξ|):
+        # the bound of test_mass_matrix_chord_gives_the_same_solutions (h = 0.01 there).
+        np.testing.assert_allclose(np.asarray(x), np.asarray(y), atol=1e-9, rtol=0)
+    plain_mean = float(np.sum(np.asarray(its))) / n
+    extrapolated_mean = float(np.sum(np.asarray(full.newton_steps)[1 : n // EVERY + 1])) / n
+    assert extrapolated_mean < plain_mean
+
+
 @pytest.mark.parametrize("name", ["lgvi", "hamel-exact"])
 def test_mass_matrix_chord_gives_the_same_solutions(long_runs, name):
     """``chord_matrix="mass"`` (the continuous Legendre matrix as the chord matrix, no

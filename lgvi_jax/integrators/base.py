@@ -5,6 +5,15 @@ example its Newton settings). It advances a model's state by one step ``dt``::
 
     new_state, info = method.step(model, state, dt)
 
+A rollout also threads what a method carries from one step to the next (diffrax's
+``solver_state``)::
+
+    solver_state = method.init_solver_state(model, state, dt)
+    new_state, info, solver_state = method.step_with(model, state, dt, solver_state)
+
+(the implicit Lie-group VIs keep their last two solutions there, to start Newton from their
+extrapolation). The solution of a step does not depend on it, only the iterates do.
+
 ``dt`` may be negative (integration backwards in time, used to check time reversibility).
 Each method declares its ``order`` (of the global error), and whether it is ``symmetric``
 (``Φ_{-h} = Φ_h^{-1}``), ``symplectic`` and ``implicit``.
@@ -62,6 +71,18 @@ class AbstractIntegrator(eqx.Module):
     @abc.abstractmethod
     def step(self, model: Any, state: Any, dt: jax.Array) -> tuple[Any, StepInfo]:
         """Advance ``state`` of ``model`` by one step ``dt``."""
+
+    def init_solver_state(self, model: Any, state: Any, dt: jax.Array) -> Any:
+        """What the method carries between the steps of a rollout of step ``dt`` that starts
+        at ``state``; ``None`` (the default) for methods that carry nothing."""
+        return None
+
+    def step_with(self, model: Any, state: Any, dt: jax.Array,
+                  solver_state: Any) -> tuple[Any, StepInfo, Any]:
+        """:meth:`step` with the solver state of :meth:`init_solver_state` (or of the
+        previous step); returns ``(new_state, info, new_solver_state)``."""
+        new_state, info = self.step(model, state, dt)
+        return new_state, info, solver_state
 
     def check_model(self, model: Any) -> None:
         """Raise ``ValueError`` if this method cannot integrate ``model``."""

@@ -191,6 +191,30 @@ class AbstractLieVI(AbstractIntegrator):
         new_state, info, _ = self.solve_step(model, state, dt)
         return new_state, info
 
+    def init_solver_state(self, model, state: RigidState, dt):
+        """The last two solutions ``(ξ, u)`` of a rollout, both the current velocities at
+        its start."""
+        v = self._velocities(model, state)
+        return v, v
+
+    def step_with(self, model, state: RigidState, dt, solver_state):
+        """A step whose Newton solve starts from the linear extrapolation ``2 s_{k-1} −
+        s_{k-2}`` of the last two solutions (an O(h²) guess, where the current velocities
+        are O(h)): one chord iteration fewer at h = 5e-3 on the car-pendulum (3 instead of
+        4), and no inverse Legendre map. The solution is the same to the solver's
+        tolerance."""
+        prev, prev2 = solver_state
+        guess = jax.lax.stop_gradient(jax.tree.map(lambda a, b: 2 * a - b, prev, prev2))
+        new_state, info, sol = self.solve_step(model, state, dt, guess)
+        return new_state, info, (sol, prev)
+
+    def _velocities(self, model, state: RigidState):
+        """The current velocities ``(ω, v)``, on scalars where the solve is."""
+        args = (model, state.R, state.mu, state.q, state.p)
+        if self.newton.scalar and self.chord_matrix == "exact":
+            return scalarize(self._initial_guess)(*args)
+        return self._initial_guess(*args)
+
     def solve_step(self, model, state: RigidState, dt, guess=None):
         """One step with Newton started from ``guess = (ξ, u)`` (default: the current
         velocities). Returns the new state, the step info and the solution ``(ξ, u)``, so
@@ -206,7 +230,7 @@ class AbstractLieVI(AbstractIntegrator):
         fast = self.newton.scalar and self.chord_matrix == "exact"
         if fast:
             if guess is None:
-                guess = scalarize(self._initial_guess)(model, R0, mu0, q0, p0)
+                guess = self._velocities(model, state)
             solver = self.newton
             if solver.scalar_jacobian == "auto":
                 solver = dataclasses.replace(solver, scalar_jacobian=self.jacobian_mode)
