@@ -212,6 +212,29 @@ def test_differential_and_its_inverse(name, w):
         assert np.max(np.abs(prod - np.eye(3))) <= 64 * EPS * cond, (np.linalg.norm(w), cond)
 
 
+_MAP_INV_JIT = {
+    "exp": (jax.jit(so3.exp), jax.jit(so3.dexp_inv)),
+    "cayley": (jax.jit(so3.cayley), jax.jit(so3.dcayley_inv)),
+}
+
+
+@pytest.mark.parametrize("name", list(_MAP_INV_JIT))
+@SETTINGS
+@given(w=_dexp_vectors)
+def test_inverse_differential_times_map_transposed_is_at_minus_w(name, w):
+    # J_l(w) = tau(w) J_r(w) = J_r(-w), so J_r(w)^-1 tau(w)^T = J_r(-w)^-1: the exact Hamel
+    # variations' B (integrators/lie.py) evaluated without the product. The product's
+    # rounding is ~10 EPS |J_r^-1| (tau is orthogonal), each side's ~10 EPS |J_r^-1(+-w)|;
+    # 64 EPS times the larger norm bounds the difference.
+    if name == "cayley":
+        w = w * 10.0
+    tau, d_inv = _MAP_INV_JIT[name]
+    lhs = np.asarray(d_inv(w)) @ np.asarray(tau(w)).T
+    rhs = np.asarray(d_inv(-w))
+    scale = max(np.linalg.norm(lhs, 2), np.linalg.norm(rhs, 2))
+    assert np.max(np.abs(lhs - rhs)) <= 64 * EPS * scale, np.linalg.norm(w)
+
+
 # ---------------------------------------------------------------------------------------
 # Newton on random well-conditioned small systems
 # ---------------------------------------------------------------------------------------
