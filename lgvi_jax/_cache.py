@@ -21,6 +21,9 @@ programs (the sweep's rollout and initial conditions, the fit's derivatives) as
 depends on: the package's source, the versions of JAX, jaxlib, Equinox and NumPy, the
 static part of the arguments and the shapes, dtypes and devices of the dynamic part. A
 repeated run deserialises the program (milliseconds) instead of tracing it again.
+:func:`prepare` does the loading (or tracing and compiling) ahead, from the shapes of
+inputs not computed yet, in a thread: the sweep prepares its rollout while it computes the
+initial conditions.
 """
 
 from __future__ import annotations
@@ -33,7 +36,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-__all__ = ["cache_dir", "call", "enable"]
+__all__ = ["cache_dir", "call", "enable", "prepare"]
 
 #: Environment variable naming the cache folder (``off`` to disable).
 ENV = "LGVI_JAX_CACHE_DIR"
@@ -168,6 +171,51 @@ def call(name: str, fn: Callable, *args: Any) -> Any:
 
         _loaded[key] = _load_or_export(key, flat, leaves)
     return _loaded[key](*leaves)
+
+
+def _is_input(x: Any) -> bool:
+    import equinox as eqx
+    import jax
+
+    return eqx.is_array(x) or isinstance(x, jax.ShapeDtypeStruct)
+
+
+def prepare(name: str, fn: Callable, *args: Any) -> None:
+    """Load (or trace and store) and compile the program of ``call(name, fn, *args)``
+    without running it, so that the later :func:`call` only runs it. ``args`` may hold
+    :class:`jax.ShapeDtypeStruct` leaves (with the sharding the real array will have) for
+    inputs not computed yet. Meant for a thread beside the main one's other work: XLA
+    reads a cached executable without the interpreter lock. Does nothing without the cache;
+    a failure only leaves the work to :func:`call`."""
+    if _traces is None:
+        return
+    import equinox as eqx
+    import jax
+
+    if jax.process_count() > 1:
+        return
+    dynamic, static = eqx.partition(args, _is_input)
+    leaves, treedef = jax.tree.flatten(dynamic)
+    key = _key(name, static, leaves)
+    if key is None or key in _loaded:
+        return
+
+    def flat(*flat_leaves):
+        return fn(*eqx.combine(jax.tree.unflatten(treedef, flat_leaves), static))
+
+    try:
+        jitted = _load_or_export(key, flat, leaves)
+        compiled = jitted.lower(*leaves).compile()
+    except Exception:
+        return
+
+    def run(*xs):
+        try:
+            return compiled(*xs)
+        except (TypeError, ValueError):  # inputs placed otherwise than announced
+            return jitted(*xs)
+
+    _loaded.setdefault(key, run)
 
 
 def _load_or_export(key: str, flat: Callable, leaves: Sequence) -> Callable:

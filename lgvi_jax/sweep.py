@@ -60,6 +60,7 @@ import dataclasses
 import json
 import math
 import os
+import threading
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -461,14 +462,42 @@ def _runner(devices: tuple, kind: str = "metrics", block: int = BLOCK) -> Callab
     return fn
 
 
-def _place(tree, devices, batch: bool):
+def _sharding(devices, batch: bool):
     if len(devices) == 1:
-        return jax.device_put(tree, devices[0])
+        return jax.sharding.SingleDeviceSharding(devices[0])
     from jax.sharding import NamedSharding
     from jax.sharding import PartitionSpec as P
 
     mesh = jax.sharding.Mesh(np.array(devices), ("batch",))
-    return jax.device_put(tree, NamedSharding(mesh, P("batch") if batch else P()))
+    return NamedSharding(mesh, P("batch") if batch else P())
+
+
+def _place(tree, devices, batch: bool):
+    if len(devices) == 1:
+        return jax.device_put(tree, devices[0])
+    return jax.device_put(tree, _sharding(devices, batch))
+
+
+def _prepare_batch(model, method, state0, batch: int, dt, n_steps, sample_every,
+                   devices) -> None:
+    """Load and compile the batched rollout that :func:`run_batch` will run on ``batch``
+    states shaped like ``state0`` (``_cache.prepare``; for a thread beside the initial
+    conditions)."""
+    from . import _cache
+
+    try:
+        if batch % len(devices):
+            devices = devices[:1]
+        sharding = _sharding(devices, True)
+        states = jax.tree.map(lambda x: jax.ShapeDtypeStruct(
+            (batch, *jnp.shape(x)), jnp.result_type(x), sharding=sharding), state0)
+        params, static = eqx.partition((model, method), eqx.is_array)
+        args = (_place(params, devices, False), static, states, jnp.float64(dt),
+                jnp.int32(n_steps), jnp.int32(sample_every))
+        runner = _runner(devices, "metrics", _block(method, devices, batch))
+        _cache.prepare("sweep.run_batch", runner, *args)
+    except Exception:  # only a head start: run_batch reports any error itself
+        pass
 
 
 def batch_arguments(model, method, states, dt, n_steps, *, sample_every=1, devices=None,
@@ -706,6 +735,14 @@ def _compute_chunks(chunks, config, model, state0, make_method, out: Path, devic
     batch = min(batch, math.ceil(config.n / n_dev) * n_dev)
     timings: dict[str, float] = {}
     methods = {}
+    prepared = None
+    if chunks:  # the first rollout loads (or compiles) while the initial conditions do
+        c = chunks[0]
+        methods[c["method"]] = make_method(c["method"])
+        prepared = threading.Thread(target=_prepare_batch, daemon=True, args=(
+            model, methods[c["method"]], state0, batch, c["dt"], config.n_steps(c["dt"]),
+            config.sample_every, devices))
+        prepared.start()
     for i, c in enumerate(chunks):
         name = c["method"]
         if name not in methods:
@@ -713,6 +750,9 @@ def _compute_chunks(chunks, config, model, state0, make_method, out: Path, devic
         count = c["stop"] - c["start"]
         states = initial_conditions(model, state0, batch, config.perturb, config.seed,
                                     start=c["start"])
+        if prepared is not None:
+            prepared.join()
+            prepared = None
         start = time.perf_counter()
         res = run_batch(model, methods[name], states, c["dt"], config.n_steps(c["dt"]),
                         sample_every=config.sample_every, devices=devices)

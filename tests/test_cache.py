@@ -193,3 +193,30 @@ def test_static_parts_without_a_faithful_key_bypass_the_cache(traces):
     out = _cache.call("test", lambda v, k: v * k, x, 3.0)  # numbers are keyed
     np.testing.assert_array_equal(out, 3 * x)
     assert len(list(traces.glob("*.jaxexport"))) == 1
+
+
+def test_a_prepared_rollout_is_loaded_once_and_gives_the_same_results(traces, monkeypatch):
+    """The sweep prepares its first rollout in a thread from the shapes and shardings its
+    states will have (``_cache.prepare`` with ``ShapeDtypeStruct`` leaves) while it computes
+    the initial conditions; the later call then runs the prepared program (no second load)
+    and gives the direct call's results to the last bit."""
+    import threading
+
+    from lgvi_jax import sweep
+    from lgvi_jax.scenes import get_scene
+
+    model, state0 = get_scene("free-rigid-body").build({})
+    method = sweep.sweep_method("free-rigid-body", "hamel")
+    devices = tuple(jax.devices())
+    batch = 2 * len(devices)
+    thread = threading.Thread(target=sweep._prepare_batch, args=(
+        model, method, state0, batch, 0.01, 50, 1, devices))
+    thread.start()
+    states = sweep.initial_conditions(model, state0, batch, 0.1, 3)
+    thread.join()
+    assert len(_cache._loaded) == 2  # the initial conditions and the rollout
+    fn, args = sweep.batch_arguments(model, method, states, 0.01, 50, devices=devices)
+    with monkeypatch.context() as m:
+        m.setattr(_cache, "_load_or_export", lambda *a: pytest.fail("loaded again"))
+        out = _cache.call("sweep.run_batch", fn, *args)
+    _assert_same(out, fn(*args))
