@@ -66,10 +66,10 @@ inverted by cofactors, is computed at the warm start and reused for up to 8 chor
 iterations; it is recomputed at the current iterate when an update fails to halve the
 previous one (Newton from then on). Stop when ``|Δw_i| <= 1e-12 (h + |w_i|)`` (the JAX
 solver's ``|Δξ_i| <= 1e-12 (1 + |ξ_i|)`` with ``ξ = w/h``; ``u``, explicit in ``w``, is
-then as accurate). Newton starts from the linear extrapolation of the last two steps'
-``w`` (the JAX engine's guess). Typically 3 residuals and one Jacobian per step at h =
-5e-3; ``chord_steps=0`` gives plain Newton (3 iterations, three Jacobians: about half the
-speed).
+then as accurate). Newton starts from the extrapolation of the last steps' ``w`` (the
+JAX engine's guess, ``lgvi_jax.integrators.lie.predict``). Typically 2 residuals and one
+Jacobian per step at h = 5e-3; ``chord_steps=0`` gives plain Newton (three Jacobians
+instead of one: about half the speed).
 Then ``R_{k+1} = R_kF``, ``q_{k+1} = q_k + hu``, ``p_{k+1} = p_k`` and the ``μ_{k+1}``
 formula. Everything in scalars: no allocation inside the step loop. One compiled loop
 serves all three methods (the method is a run-time code) and both entry points
@@ -87,17 +87,27 @@ are run-time arguments, so they cost no second compilation (see :mod:`numba_lgvi
 
 from __future__ import annotations
 
+import math
 from concurrent.futures import ThreadPoolExecutor
 
 import numba
 import numpy as np
 from numba import njit
 
+from lgvi_jax.integrators.lie import PREDICTOR_POINTS
+
 #: method name -> integer code used inside the compiled loops
 CODES = {"hamel": 0, "hamel-cayley": 1, "hamel-exact": 2}
 METHODS = tuple(CODES)
 
 _TAYLOR_THETA_SQ = 1e-2  # as lgvi_jax.so3: Taylor branches for theta < 0.1
+# The Newton guess of a method's own steps, as lgvi_jax.integrators.lie.predict (on w
+# alone: the cart velocity is eliminated here): _BINOMIAL_SIGNED[m, i] is the weight of
+# the (i+1)-th newest solution in the extrapolation of degree m.
+_PREDICTOR_POINTS = PREDICTOR_POINTS
+_BINOMIAL_SIGNED = np.array([[(-1) ** i * math.comb(m + 1, i + 1) if i <= m else 0
+                              for i in range(PREDICTOR_POINTS)]
+                             for m in range(PREDICTOR_POINTS)], dtype=np.float64)
 
 
 @njit(cache=False, error_model="numpy")
@@ -450,13 +460,15 @@ def solver_kernels(evaluate):
         A step is the sub-steps ``γ_1 h, ..., γ_s h`` (``gammas``; ``(1,)`` for the method
         itself, the composition's fractions for ``METHOD@ORDER``), each warm-started from
         the previous sub-step's ``w`` scaled by ``γ_i/γ_{i-1}`` (a method's own steps: from
-        the extrapolation ``2 w_{k-1} − w_{k-2}``, as the JAX engine). Per trajectory: Newton
-        iterations in all (``its``), the most in one step (``its_max``), the result code,
-        the index of the failed step (-1 if none) and, with ``metrics``, the sweep's metrics
-        (:data:`METRICS`, one row of ``out``) measured after every step."""
+        the extrapolation of the last solutions, as the JAX engine's ``lie.predict``). Per
+        trajectory: Newton iterations in all (``its``), the most in one step (``its_max``),
+        the result code, the index of the failed step (-1 if none) and, with ``metrics``, the
+        sweep's metrics (:data:`METRICS`, one row of ``out``) measured after every step."""
         R0, mu0, q0, p0 = np.empty((3, 3)), np.empty(3), np.empty(2), np.empty(2)
         R1, mu1, q1, p1 = np.empty((3, 3)), np.empty(3), np.empty(2), np.empty(2)
-        w, w_old = np.empty(3), np.empty(3)
+        w = np.empty(3)
+        hist = np.empty((_PREDICTOR_POINTS, 3))  # the last solutions w, newest first
+        lin, high = np.empty(3), np.empty(3)
         Ji = np.empty(9)
         A, X = np.empty((3, 3)), np.empty(3)
         acc = np.empty(_ACC)
@@ -491,16 +503,35 @@ def solver_kernels(evaluate):
             most = 0
             code = 0
             fail = -1
-            for j in range(3):
-                w_old[j] = w[j]
+            for i in range(_PREDICTOR_POINTS):
+                for j in range(3):
+                    hist[i, j] = w[j]
+            count = 0
             for k in range(n_steps):
                 if n_sub == 1:
-                    # the JAX engine's guess (AbstractLieVI.step_with): the linear
-                    # extrapolation 2 w_{k-1} - w_{k-2} of the last two solutions
+                    # the JAX engine's guess (AbstractLieVI.step_with, lie.predict): the
+                    # extrapolation of the highest degree the solutions allow, linear where
+                    # they do not vary smoothly
+                    if k > 0:
+                        for i in range(_PREDICTOR_POINTS - 1, 0, -1):
+                            for j in range(3):
+                                hist[i, j] = hist[i - 1, j]
+                        for j in range(3):
+                            hist[0, j] = w[j]
+                        count = min(count + 1, _PREDICTOR_POINTS)
+                    degree = max(2, min(count, _PREDICTOR_POINTS) - 1)
+                    step_size, corr = 0.0, 0.0
                     for j in range(3):
-                        t = w[j]
-                        w[j] = 2.0 * t - w_old[j]
-                        w_old[j] = t
+                        lin[j] = 2.0 * hist[0, j] - hist[1, j]
+                        acc_h = 0.0
+                        for i in range(degree + 1):
+                            acc_h += _BINOMIAL_SIGNED[degree, i] * hist[i, j]
+                        high[j] = acc_h
+                        step_size = max(step_size, abs(hist[0, j] - hist[1, j]))
+                        corr = max(corr, abs(high[j] - lin[j]))
+                    use = count > 2 and corr <= step_size
+                    for j in range(3):
+                        w[j] = high[j] if use else lin[j]
                 n_its = 0
                 for i in range(n_sub):
                     for j in range(3):

@@ -11,7 +11,7 @@ A rollout also threads what a method carries from one step to the next (diffrax'
     solver_state = method.init_solver_state(model, state, dt)
     new_state, info, solver_state = method.step_with(model, state, dt, solver_state)
 
-(the implicit Lie-group VIs keep their last two solutions there, to start Newton from their
+(the implicit Lie-group VIs keep their last solutions there, to start Newton from their
 extrapolation). The solution of a step does not depend on it, only the iterates do.
 
 ``dt`` may be negative (integration backwards in time, used to check time reversibility).
