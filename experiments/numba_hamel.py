@@ -68,8 +68,8 @@ previous one (Newton from then on). Stop when ``|Δw_i| <= 1e-12 (h + |w_i|)`` (
 solver's ``|Δξ_i| <= 1e-12 (1 + |ξ_i|)`` with ``ξ = w/h``; ``u``, explicit in ``w``, is
 then as accurate). Newton starts from the extrapolation of the last steps' ``w`` (the
 JAX engine's guess, ``lgvi_jax.integrators.lie.predict``). Typically 2 residuals and one
-Jacobian per step at h = 5e-3; ``chord_steps=0`` gives plain Newton (three Jacobians
-instead of one: about half the speed).
+Jacobian per step at h = 5e-3; ``chord_steps=0`` gives plain Newton (a Jacobian per
+iteration: about half the speed).
 Then ``R_{k+1} = R_kF``, ``q_{k+1} = q_k + hu``, ``p_{k+1} = p_k`` and the ``μ_{k+1}``
 formula. Everything in scalars: no allocation inside the step loop. One compiled loop
 serves all three methods (the method is a run-time code) and both entry points
