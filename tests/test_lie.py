@@ -14,7 +14,7 @@ import lgvi_jax as L
 from lgvi_jax import so3
 from lgvi_jax.diagnostics import drift_ratio
 from lgvi_jax.integrators import LGVI, RIGID_METHODS, HamelVI, resolve_method
-from lgvi_jax.integrators.lie import PREDICTOR_POINTS, predict
+from lgvi_jax.integrators.lie import PREDICTOR_POINTS, predict, unresolved, where_any
 from lgvi_jax.models import CarPendulum, FreeRigidBody, HeavyTop, RigidState
 from lgvi_jax.newton import RESULTS, Newton
 from lgvi_jax.simulate import IntegrationError, simulate
@@ -543,3 +543,45 @@ def test_mass_matrix_chord_gives_the_same_solutions(long_runs, name):
     assert np.max(np.abs(lz - lz[0])) <= 1e-11  # the bound of the default (10^4 steps)
     assert float(runs[1].newton_mean) > default_newton_mean
     assert float(runs[1].newton_mean) <= 20  # no fallback to Newton on average
+
+
+def test_unresolved_history_is_detected_and_smooth_is_not():
+    """``unresolved``: a history whose second difference exceeds half its first (a step
+    too large for the motion); never with fewer than three solutions."""
+    smooth = tuple((jnp.asarray([1.0 + 0.01 * j]), jnp.asarray([0.0])) for j in range(5))
+    wild = tuple((jnp.asarray([(-1.0) ** j]), jnp.asarray([0.0])) for j in range(5))
+    assert not bool(unresolved(smooth, jnp.int32(5)))
+    assert bool(unresolved(wild, jnp.int32(3)))
+    assert not bool(unresolved(wild, jnp.int32(2)))
+
+
+def test_where_any_under_vmap_equals_the_loop():
+    """``where_any`` batched (``compute`` run for the whole batch when any member needs it,
+    then selected per member) equals it member by member, with and without a member that
+    needs it."""
+    def compute(x, y):
+        return (jnp.sin(x) * y, jnp.cos(x))
+
+    x = jnp.linspace(0.0, 1.0, 6)
+    y = jnp.asarray(2.0)
+    other = (x * 0 - 1.0, x * 0 + 5.0)
+    for pred in (x > 0.5, x > 2.0):
+        batched = jax.vmap(lambda p, o0, o1, xi: where_any(p, compute, (o0, o1), (xi, y)))(
+            pred, *other, x)
+        for i in range(x.shape[0]):
+            one = where_any(pred[i], compute, (other[0][i], other[1][i]), (x[i], y))
+            for a, b in zip(batched, one, strict=True):
+                assert float(a[i]) == float(b)
+
+
+@pytest.mark.parametrize("name, h", [("lgvi", 0.13), ("hamel-exact", 0.3)])
+def test_steps_near_the_stability_limit_start_from_the_velocities(name, h):
+    """From the extrapolated guess alone, Newton fails at these steps (``lgvi`` at step 3,
+    ``hamel-exact`` at step 4: measured); started from the current velocities where the
+    solutions are unresolved (``step_with``), the 50 s run goes through, as the steps from
+    the velocities do."""
+    model = CarPendulum()
+    method = RIGID_METHODS[name]()
+    traj = simulate(model, method, model.default_state(), h, int(np.ceil(50.0 / h)),
+                    save_every=1)
+    assert traj.ok, traj.message
