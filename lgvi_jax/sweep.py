@@ -473,9 +473,16 @@ def _sharding(devices, batch: bool):
 
 
 def _place(tree, devices, batch: bool):
-    if len(devices) == 1:
-        return jax.device_put(tree, devices[0])
-    return jax.device_put(tree, _sharding(devices, batch))
+    """``tree`` on ``devices``; a :class:`jax.ShapeDtypeStruct` leaf (an input not computed
+    yet, :func:`_prepare_batch`) gets the sharding the array will have."""
+    sharding = _sharding(devices, batch)
+
+    def put(x):
+        if isinstance(x, jax.ShapeDtypeStruct):
+            return jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sharding)
+        return jax.device_put(x, devices[0] if len(devices) == 1 else sharding)
+
+    return jax.tree.map(put, tree)
 
 
 def _prepare_batch(model, method, state0, batch: int, dt, n_steps, sample_every,
@@ -486,16 +493,11 @@ def _prepare_batch(model, method, state0, batch: int, dt, n_steps, sample_every,
     from . import _cache
 
     try:
-        if batch % len(devices):
-            devices = devices[:1]
-        sharding = _sharding(devices, True)
-        states = jax.tree.map(lambda x: jax.ShapeDtypeStruct(
-            (batch, *jnp.shape(x)), jnp.result_type(x), sharding=sharding), state0)
-        params, static = eqx.partition((model, method), eqx.is_array)
-        args = (_place(params, devices, False), static, states, jnp.float64(dt),
-                jnp.int32(n_steps), jnp.int32(sample_every))
-        runner = _runner(devices, "metrics", _block(method, devices, batch))
-        _cache.prepare("sweep.run_batch", runner, *args)
+        states = jax.tree.map(lambda x: jax.ShapeDtypeStruct((batch, *jnp.shape(x)),
+                                                             jnp.result_type(x)), state0)
+        fn, args = batch_arguments(model, method, states, dt, n_steps,
+                                   sample_every=sample_every, devices=devices)
+        _cache.prepare("sweep.run_batch", fn, *args)
     except Exception:  # only a head start: run_batch reports any error itself
         pass
 
@@ -503,7 +505,8 @@ def _prepare_batch(model, method, state0, batch: int, dt, n_steps, sample_every,
 def batch_arguments(model, method, states, dt, n_steps, *, sample_every=1, devices=None,
                     kind="metrics"):
     """``(runner, args)`` of a batched rollout, the arguments placed on ``devices``: call
-    ``runner(*args)``, or ``runner.lower(*args).compile()`` to time compilation apart."""
+    ``runner(*args)``, or ``runner.lower(*args).compile()`` to time compilation apart.
+    ``states`` may be :class:`jax.ShapeDtypeStruct` leaves (given their sharding here)."""
     method.check_model(model)
     batch = jax.tree.leaves(states)[0].shape[0]
     devices = tuple(jax.devices() if devices is None else devices)
