@@ -280,6 +280,10 @@ def cmd_sweep(args: argparse.Namespace) -> int:
         v is not None for v in (args.coordinator, args.num_processes, args.process_id))
     configure_devices(args.devices, affinity=distributed)
     index = _start_distributed(args)
+    if index == 0:  # the process that draws the plot: matplotlib loads meanwhile
+        from . import _plot_worker
+
+        _plot_worker.start()
     import jax
 
     from .scenes import get_scene

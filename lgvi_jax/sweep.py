@@ -72,7 +72,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import so3
-from ._io import atomic_open, atomic_write, atomic_write_json, atomic_write_text, save_npz_atomic
+from ._io import (
+    atomic_open,
+    atomic_write_bytes,
+    atomic_write_json,
+    atomic_write_text,
+    save_npz_atomic,
+)
 from .newton import RESULTS
 from .progress import Progress
 from .scalarize import on_scalars
@@ -1078,34 +1084,22 @@ def _write_outputs(out: Path, config: SweepConfig, results, summary) -> None:
 
 
 def _plot(path: Path, config: SweepConfig, results) -> None:
-    # A Figure with the Agg canvas directly: importing pyplot (and choosing its backend)
-    # took ~0.5 s of a short sweep's wall clock.
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
+    from . import _plot_worker
     from .plotting import METHOD_STYLE
 
-    fig = Figure(figsize=(max(6.0, 1.1 * len(results) + 2), 4.2))
-    FigureCanvasAgg(fig)
-    ax = fig.subplots()
     data, labels, colors = [], [], []
     for (method, dt), r in results.items():
         ok = r["result"] == RESULTS.successful
         e = r["energy_error_max"][ok]
-        data.append(np.log10(np.maximum(e, 1e-17)) if e.size else [np.nan])
+        data.append(np.log10(np.maximum(e, 1e-17)) if e.size else np.array([np.nan]))
         failed = int(np.sum(~ok))
         labels.append(f"{method}\ndt={dt:g}" + (f"\n{failed} failed" if failed else ""))
         colors.append(METHOD_STYLE.get(method, {}).get("color", "C0"))
-    parts = ax.violinplot(data, showmedians=True, showextrema=True)
-    for body, color in zip(parts["bodies"], colors, strict=True):
-        body.set_facecolor(color)
-        body.set_alpha(0.5)
-    ax.set_xticks(range(1, len(labels) + 1), labels, fontsize=8)
-    ax.set_ylabel(r"$\log_{10}$ max $|H - H_0|/|H_0|$")
-    ax.set_title(f"{config.system}: energy error over {config.n} initial conditions\n"
-                 f"(perturbation {config.perturb:g}, t = {config.t_final:g})", fontsize=10)
-    ax.grid(alpha=0.3)
-    # fixed margins for the 2-line title and the 3-line tick labels (tight_layout measured
-    # every text box: 0.2 s)
-    fig.subplots_adjust(left=0.9 / fig.get_figwidth(), right=0.98, bottom=0.17, top=0.86)
-    atomic_write(path, lambda fh: fig.savefig(fh, format="png", dpi=120))
+    payload = {
+        "data": data, "labels": labels, "colors": colors,
+        "ylabel": r"$\log_{10}$ max $|H - H_0|/|H_0|$",
+        "title": (f"{config.system}: energy error over {config.n} initial conditions\n"
+                  f"(perturbation {config.perturb:g}, t = {config.t_final:g})"),
+        "width": max(6.0, 1.1 * len(results) + 2), "height": 4.2,
+    }
+    atomic_write_bytes(path, _plot_worker.render(payload))

@@ -417,3 +417,44 @@ def test_diagnostics_on_scalars_equal_the_array_form(make):
     got_b, want_b = jax.jit(jax.vmap(lambda s: both(model, s)))(states)
     for k in want:
         np.testing.assert_allclose(got_b[k], want_b[k], rtol=0, atol=1e-10, err_msg=k)
+
+
+def _violin_payload():
+    rng = np.random.default_rng(0)
+    return {"data": [rng.normal(-3.0, 0.1, 200), np.array([np.nan])],
+            "labels": ["hamel\ndt=0.005", "lgvi\ndt=0.01\n3 failed"], "colors": ["C1", "C0"],
+            "ylabel": r"$\log_{10}$ max $|H - H_0|/|H_0|$", "title": "t\n(u)",
+            "width": 6.0, "height": 4.2}
+
+
+def test_plot_helper_draws_the_same_png_as_the_process():
+    """The helper process (started early by the command line) returns the bytes the
+    in-process drawing makes; asking again (no helper left) draws in process."""
+    from lgvi_jax import _plot_worker
+
+    payload = _violin_payload()
+    here = _plot_worker.violin_png(payload)
+    assert here.startswith(b"\x89PNG")
+    _plot_worker.start()
+    helper = _plot_worker._helper
+    assert helper is not None
+    assert _plot_worker.render(payload) == here
+    assert helper.wait(timeout=30) == 0
+    assert _plot_worker._helper is None and _plot_worker.render(payload) == here
+
+
+def test_plot_helper_failure_falls_back_to_the_process():
+    """A helper that died (or never answers) costs nothing but its head start: the plot is
+    drawn in process; an unused helper exits when its input closes."""
+    from lgvi_jax import _plot_worker
+
+    payload = _violin_payload()
+    _plot_worker.start()
+    dead = _plot_worker._helper
+    dead.kill()
+    dead.wait(timeout=30)
+    assert _plot_worker.render(payload) == _plot_worker.violin_png(payload)
+    _plot_worker.start()
+    unused, _plot_worker._helper = _plot_worker._helper, None
+    unused.stdin.close()
+    assert unused.wait(timeout=60) == 0
