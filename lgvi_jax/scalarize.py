@@ -665,7 +665,8 @@ def _materialization_points(jaxpr) -> frozenset:
     for eqn in jaxpr.eqns:
         c = 1 + sum(cost.get(v, 0) for v in eqn.invars if not isinstance(v, jex.core.Literal))
         for out in eqn.outvars:
-            if uses.get(out, 0) >= 2 and c >= MATERIALIZE_COST and not out.aval.shape:
+            if (uses.get(out, 0) >= 2 and c >= MATERIALIZE_COST and not out.aval.shape
+                    and jnp.issubdtype(out.aval.dtype, jnp.floating)):
                 keep.add(out)
                 cost[out] = 0
             else:

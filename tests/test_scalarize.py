@@ -231,6 +231,27 @@ def test_on_scalars_equals_the_function_or_returns_it():
     assert sort is jnp.sort
 
 
+def test_only_floating_values_are_materialised():
+    """A shared predicate as costly as a materialised value is left to XLA: dividing it by
+    the runtime one would turn it into a float (``select`` then rejects it)."""
+    from lgvi_jax import scalarize as sc
+
+    def f(x):
+        s, p = x, x > 0.5
+        for i in range(sc.MATERIALIZE_COST):
+            s = s * 1.5 + x
+            p = (p | (x > 0.1 * i)) if i % 2 else (p & (x < 1.0 - 0.02 * i))
+        return jnp.where(p, x, -x) + s, jnp.where(p, 2 * x, s)
+
+    x = _rand(3, (8,))
+    program = sc.ScalarFunction(f, x[0])
+    assert program.keep  # s is materialised, p (as costly, read twice) is not
+    assert all(jnp.issubdtype(v.aval.dtype, jnp.floating) for v in program.keep)
+    g = jax.jit(jax.vmap(sc.on_scalars(f, x[0])))
+    for got, want in zip(g(x), jax.vmap(f)(x), strict=True):
+        np.testing.assert_allclose(got, want, rtol=1e-13, atol=0)  # the same operations
+
+
 def test_unsupported_primitive_is_named():
     with pytest.raises(NotImplementedError, match="argmax"):
         scalarize(lambda x: jnp.argmax(x))(jnp.arange(3.0))
