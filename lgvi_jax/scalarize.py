@@ -591,8 +591,10 @@ class ScalarFunction:
 
 
 #: Cost (operations, counting a value read twice twice) above which a value read by several
-#: operations is materialised under ``vmap`` (:class:`ScalarFunction`).
-MATERIALIZE_COST = 16
+#: operations is materialised under ``vmap`` (:class:`ScalarFunction`). Chosen by measuring
+#: 12-48 on the Lie-group VIs of three models, one trajectory and batches (CHANGELOG,
+#: 2026-12-05): the best single value, though not the best for every method.
+MATERIALIZE_COST = 20
 
 
 #: Elementwise primitives whose operands commute (for :func:`_simplify_program`).
