@@ -533,9 +533,9 @@ class ScalarFunction:
 
     The scalar program is built once (a jaxpr of 0-d operations, after folding and the
     identities) and replayed at every call. Replayed under ``vmap``, the values that
-    several operations read and that take more than :data:`MATERIALIZE_COST` operations
-    to compute are materialised (:func:`_keep`): XLA would otherwise recompute them inside
-    every kernel that reads them (see :func:`materialize`).
+    several operations read and that cost enough to compute (:data:`MATERIALIZE_COST`) are
+    materialised (:func:`_materialization_points`): XLA would otherwise recompute them inside
+    every kernel that reads them.
     """
 
     def __init__(self, fn: Callable, *example):
@@ -590,11 +590,12 @@ class ScalarFunction:
         return jax.tree.unflatten(self.out_tree, _unflatten(outs, self.out_avals))
 
 
-#: Cost (operations, counting a value read twice twice) above which a value read by several
-#: operations is materialised under ``vmap`` (:class:`ScalarFunction`). Chosen by measuring
-#: 12-48 on the Lie-group VIs of three models, one trajectory and batches (CHANGELOG,
-#: 2026-12-05): the best single value, though not the best for every method.
-MATERIALIZE_COST = 20
+#: A value read by ``n >= 2`` operations is materialised under ``vmap``
+#: (:class:`ScalarFunction`) when ``cost * (n - 1)``, the operations XLA would repeat by
+#: recomputing it in every reader, is at least this (``cost``: its operations, counting a
+#: value read twice twice). Chosen by measurement over the Lie-group VIs of three models, one
+#: trajectory and batches (CHANGELOG, 2026-12-05).
+MATERIALIZE_COST = 40
 
 
 #: Elementwise primitives whose operands commute (for :func:`_simplify_program`).
@@ -651,9 +652,9 @@ def _flat_dtypes(avals):
 
 
 def _materialization_points(jaxpr) -> frozenset:
-    """The variables to compute once: read at least twice, and each costing at least
-    :data:`MATERIALIZE_COST` operations as XLA would emit it (its expression tree, down to
-    inputs and other such variables)."""
+    """The floating-point variables to compute once: read ``n >= 2`` times, with
+    ``cost * (n - 1) >=`` :data:`MATERIALIZE_COST`, ``cost`` the operations XLA would emit for
+    it (its expression tree, down to inputs and other such variables)."""
     uses: dict = {}
     for eqn in jaxpr.eqns:
         for v in eqn.invars:
@@ -667,7 +668,8 @@ def _materialization_points(jaxpr) -> frozenset:
     for eqn in jaxpr.eqns:
         c = 1 + sum(cost.get(v, 0) for v in eqn.invars if not isinstance(v, jex.core.Literal))
         for out in eqn.outvars:
-            if (uses.get(out, 0) >= 2 and c >= MATERIALIZE_COST and not out.aval.shape
+            n = uses.get(out, 0)
+            if (n >= 2 and c * (n - 1) >= MATERIALIZE_COST and not out.aval.shape
                     and jnp.issubdtype(out.aval.dtype, jnp.floating)):
                 keep.add(out)
                 cost[out] = 0
