@@ -1,17 +1,15 @@
 """The sweep's energy-error plot, drawn in a helper process started early.
 
-Importing matplotlib and drawing the violin plot is ~0.4 s of a command-line sweep's wall
-clock (a warm 1024-trajectory car-pendulum sweep: ~3.4 s in all), spent after the rollouts,
-on one core. :func:`start` launches a Python process that imports matplotlib while the
-command line is still setting up (building the model, the initial conditions, loading the
-compiled rollout: work that leaves a core idle on a 2-core machine) and then waits for the
-data on its standard input; :func:`render` sends it the plot's data and receives the PNG.
-The helper imports nothing of this package (it runs this file as a script), only NumPy and
-matplotlib.
+Importing matplotlib and drawing come after the rollouts, on one core, in a short command-line
+sweep's wall clock. :func:`start` launches a Python process that imports matplotlib (and
+draws a first figure) while the command line is still setting up, then waits for the data on
+its standard input; :func:`render` sends it the plot's data and receives the PNG. The helper
+runs this file as a script: it imports nothing of this package, only NumPy and matplotlib.
 
 Nothing depends on the helper: if it was not started, cannot start, fails or takes more
 than :data:`TIMEOUT_S`, :func:`render` draws in this process instead (the same figure). A
-helper that is never asked exits when this process does (end of its input).
+helper that is never asked exits when this process does (end of its input). Measurements:
+CHANGELOG, 2026-12-05 (fifth session).
 """
 
 from __future__ import annotations
@@ -34,8 +32,7 @@ def violin_png(payload: dict[str, Any]) -> bytes:
     """The PNG of a violin plot: ``payload`` has ``data`` (one 1-d array per violin),
     ``labels``, ``colors`` (matplotlib colours), ``ylabel``, ``title``, ``width`` and
     ``height`` (inches)."""
-    # A Figure with the Agg canvas directly: importing pyplot (and choosing its backend)
-    # costs ~0.5 s more.
+    # A Figure with the Agg canvas directly: pyplot (and choosing its backend) is slower
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
@@ -52,7 +49,7 @@ def violin_png(payload: dict[str, Any]) -> bytes:
     ax.set_title(payload["title"], fontsize=10)
     ax.grid(alpha=0.3)
     # fixed margins for a 2-line title and 3-line tick labels (tight_layout measures every
-    # text box: 0.2 s)
+    # text box, slowly)
     fig.subplots_adjust(left=0.9 / fig.get_figwidth(), right=0.98, bottom=0.17, top=0.86)
     fh = io.BytesIO()  # in memory: the caller writes the file (atomically)
     fig.savefig(fh, format="png", dpi=120)
@@ -90,8 +87,8 @@ def render(payload: dict[str, Any]) -> bytes:
 def _serve() -> None:
     import numpy as np
 
-    # The head start: the imports, and a first figure drawn (fonts, text layout: ~0.1 s of
-    # the first savefig) while the parent is still busy.
+    # The head start: the imports, and a first figure drawn (fonts, text layout) while the
+    # parent is still busy.
     violin_png({"data": [np.linspace(0.0, 1.0, 8)], "labels": ["a\nb"], "colors": ["C0"],
                 "ylabel": "$x$", "title": "a\nb", "width": 6.0, "height": 4.2})
     data = sys.stdin.buffer.read()
