@@ -29,11 +29,12 @@ computation on an unknown ``XLA_FLAGS`` entry), so the flag is added only for th
 versions that know it (:data:`EMITTER_FLAG_BEFORE`).
 
 **Wide vectors, loops not unrolled.** A batch on scalars is a long sequence of small
-loops, one per fusion, over the trajectories of a block (128 on a CPU): the compiled
-rollout is one function of some 400 such loops, and LLVM's optimisation of that function is
-most of the compile time. ``--xla_cpu_prefer_vector_width=512`` lets LLVM use 512-bit
-vectors where the CPU has them (XLA's default is 256; no effect on a CPU without AVX-512),
-and the backend option ``xla_cpu_disable_loop_unrolling`` keeps each loop rolled.
+loops, one per fusion, over the trajectories of a block (``sweep.SCALAR_BLOCK`` on a CPU):
+the compiled rollout is one function of some 400 such loops, and LLVM's optimisation of
+that function is most of the compile time. ``--xla_cpu_prefer_vector_width=512`` lets LLVM
+use 512-bit vectors where the CPU has them (XLA's default is 256; no effect on a CPU
+without AVX-512), and the backend option ``xla_cpu_disable_loop_unrolling`` keeps each
+loop rolled.
 Measured on the 2-core AVX-512 CPU, car-pendulum, 1024 trajectories on 2 devices,
 compiled ahead of time, each configuration in its own process, alternated, two rounds:
 XLA's compile 4.8-6.2 -> 3.0-4.5 s (35-45 % less) for ``lgvi``, ``hamel``, ``hamel-exact``

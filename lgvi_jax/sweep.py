@@ -401,12 +401,11 @@ _RUNNERS: dict[Any, Callable] = {}
 #: cache. Measured on one core (lgvi, mass chord, 2000 steps): 1.23e6 steps/s for 512 at
 #: once, 8.9e5 for 1024 or 2048 at once, 1.22e6 for 2048 in blocks of 512.
 BLOCK = 512
-#: The block size for the steps emitted on scalars (the scalar engine):
-#: their hundreds of live values are each a vector over the block, so the working set grows
-#: with it. Measured (2 devices, 1024 trajectories, 2000 steps, interleaved): car-pendulum
-#: ``lgvi`` on scalars 2.2e6 / 1.5e6 / 8.4e5 steps/s in blocks of 128 / 256 / 512, fused
-#: ``hamel`` 3.1e6 / 1.9e6 (128 / 512); the array engine has no such preference.
-SCALAR_BLOCK = 128
+#: The block size for the steps emitted on scalars (the scalar engine): their hundreds of
+#: live values are each a vector over the block, so the working set grows with it; 32
+#: (four 512-bit vectors) measured fastest of 16-512 across models and methods, with the
+#: same compile time (CHANGELOG, 2026-12-05); the array engine has no such preference.
+SCALAR_BLOCK = 32
 
 
 def _vmap_in_blocks(f, states, block: int):
