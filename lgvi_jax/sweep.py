@@ -402,9 +402,10 @@ _RUNNERS: dict[Any, Callable] = {}
 #: once, 8.9e5 for 1024 or 2048 at once, 1.22e6 for 2048 in blocks of 512.
 BLOCK = 512
 #: The block size for the steps emitted on scalars (the scalar engine): their hundreds of
-#: live values are each a vector over the block, so the working set grows with it; 32
-#: (four 512-bit vectors) measured fastest of 16-512 across models and methods, with the
-#: same compile time (CHANGELOG, 2026-12-05); the array engine has no such preference.
+#: live values are each a vector over the block, so the working set grows with it. Of 16,
+#: 32, 64, 128 (and earlier 256, 512), 16 and 32 ran fastest across models and methods,
+#: with the same compile time (CHANGELOG, 2026-12-05; measured on an AVX-512 CPU only);
+#: the array engine has no such preference.
 SCALAR_BLOCK = 32
 
 
