@@ -841,22 +841,65 @@ def _scalar_programs(fn, y0, args, mode: str = "auto"):
     return residual, _scalar_jacobian(fn, y0, args, mode)
 
 
-def _iterate_scalar(programs, y0, args, solver: Newton, batched: bool = False):
+def _split_lanes(x, lanes: int | None) -> np.ndarray:
+    """:func:`~lgvi_jax.scalarize.split` of one array; with ``lanes``, of an array whose
+    leading axis is the batch, into vectors over the batch (one per entry)."""
+    if lanes is None:
+        return sc.split(x)
+    out = np.empty(x.shape[1:], dtype=object)
+    for idx in np.ndindex(out.shape):
+        out[idx] = x[(slice(None), *idx)]
+    return out
+
+
+def _while_lanes(cond, body, init, lanes: int | None):
+    """``lax.while_loop(cond, body, init)``; with ``lanes``, every carry a vector over a
+    batch and ``cond`` one predicate per member: the loop runs while any member's holds and
+    a member whose predicate fails keeps its carry, so that each member sees its own loop
+    (what ``vmap`` makes of a loop, written once instead of batched by JAX's fixed-point
+    search over the carries, which retraces the body per search step)."""
+    if lanes is None:
+        return jax.lax.while_loop(cond, body, init)
+
+    def masked(c):
+        active = cond(c)
+        return jax.tree.map(lambda new, old: jnp.where(active, new, old), body(c), c)
+
+    return jax.lax.while_loop(lambda c: jnp.any(cond(c)), masked, init)
+
+
+def _iterate_scalar(programs, y0, args, solver: Newton, lanes: int | None = None):
     """:func:`_iterate_chord_refresh` (``chord_steps > 0``) or plain Newton, written on
     scalars, with the matrix inverted by blocks (:func:`_scalar_block_inverse`).
-    ``programs``: :func:`_scalar_programs`. ``batched``: the layout under ``vmap`` (shared
-    values materialised, see :class:`~lgvi_jax.scalarize.ScalarFunction`). Each outer
-    iteration inverts the Jacobian at its iterate and runs the updates in an inner loop
-    (chord phase: until convergence or stall; Newton phase: one update), so that the
-    residual appears once in the program. Returns (y, result, steps, residual)."""
+    ``programs``: :func:`_scalar_programs`, replayed with their shared values materialised
+    (:class:`~lgvi_jax.scalarize.ScalarFunction`). Each outer iteration inverts the Jacobian
+    at its iterate and runs the updates in an inner loop (chord phase: until convergence or
+    stall; Newton phase: one update), so that the residual appears once in the program.
+
+    ``lanes``: ``None`` for one solve; else the solve of a batch of that many (``y0``
+    ``[lanes, m]``, ``args`` leaves batched along their leading axis where ``args_batched``
+    says so, see :func:`_scalar_core`), every scalar a vector over the batch (a structure of
+    arrays) and the loops :func:`_while_lanes`: each member's iterates, result and
+    iteration count are those of its own solve. Returns (y, result, steps, residual)."""
     res_fn, jac_fn = programs
+    args, args_batched = args if lanes is not None else (args, None)
     dtype = y0.dtype
-    m = y0.shape[0]
-    args_s = jax.tree.map(sc.split, args)
+    m = y0.shape[-1]
+    shape = () if lanes is None else (lanes,)
+    if lanes is None:
+        args_s = jax.tree.map(sc.split, args)
+    else:
+        args_s = jax.tree.map(lambda x, b: _split_lanes(x, lanes if b else None), args,
+                              args_batched)
     chord_cap = min(solver.chord_steps, solver.max_steps)
-    inf = jnp.asarray(jnp.inf, dtype)
     zero = sc.constant(0.0, dtype)
     atol, rtol = sc.constant(solver.atol, dtype), sc.constant(solver.rtol, dtype)
+
+    def full(value, dt):
+        return jnp.full(shape, value, dt)
+
+    def lane(v):
+        return jnp.broadcast_to(_jnp(v, dtype), shape)
 
     def as_obj(y):
         out = np.empty((m,), dtype=object)
@@ -865,7 +908,7 @@ def _iterate_scalar(programs, y0, args, solver: Newton, batched: bool = False):
         return out
 
     def update(y, J_inv, k, prev, newton, cap):
-        F = list(res_fn(as_obj(y), args_s, batched=batched))
+        F = list(res_fn(as_obj(y), args_s, batched=True))
         delta = [sc.neg(d) for d in _scalar_matvec(J_inv, F)]
         res = _scalar_max([sc.absolute(f) for f in F], zero)
         finite = sc.isfinite(res)
@@ -884,33 +927,34 @@ def _iterate_scalar(programs, y0, args, solver: Newton, batched: bool = False):
                       jnp.where(newton & (k >= cap), RESULTS.max_steps_reached, -1)),
         ).astype(jnp.int32)
         y_new = [jnp.where(finite, a, b) for a, b in zip(y_new, y, strict=True)]
-        return (tuple(_jnp(v, dtype) for v in y_new), k, result, _jnp(res, dtype),
-                _jnp(size, dtype), stop)
+        return (tuple(lane(v) for v in y_new), k, result, lane(res), lane(size), stop)
 
     def outer_body(carry):
         y, k, _, _, newton, cap = carry
-        J_inv = _scalar_block_inverse(_rows(jac_fn(as_obj(y), args_s, batched=batched)))
+        J_inv = _scalar_block_inverse(_rows(jac_fn(as_obj(y), args_s, batched=True)))
 
         def inner_body(c):
             y, k, _, _, prev, _ = c
             return update(list(y), J_inv, k, prev, newton, cap)
 
-        y, k, result, res, _, _ = jax.lax.while_loop(
+        y, k, result, res, _, _ = _while_lanes(
             lambda c: (c[2] < 0) & ~c[5], inner_body,
-            (y, k, jnp.asarray(-1, jnp.int32), inf, inf, jnp.asarray(False)))
+            (y, k, full(-1, jnp.int32), full(jnp.inf, dtype), full(jnp.inf, dtype),
+             full(False, jnp.bool_)), lanes)
         # A chord phase that did not converge: restart from the guess with full Newton.
         fallback = ~newton & (result < 0)
         y = tuple(jnp.where(fallback, a, b) for a, b in zip(y0_s, y, strict=True))
         cap = jnp.where(fallback, k + solver.max_steps, cap)
         return y, k, result, res, newton | fallback, cap
 
-    y0_s = tuple(_jnp(v, dtype) for v in sc.split(y0))
-    zero_i = jnp.asarray(0, jnp.int32)
-    start_newton = solver.chord_steps == 0
-    init = (y0_s, zero_i, jnp.asarray(-1, jnp.int32), inf, jnp.asarray(start_newton),
-            jnp.asarray(solver.max_steps, jnp.int32))
-    y, k, result, res, _, _ = jax.lax.while_loop(lambda c: c[2] < 0, outer_body, init)
-    return jnp.stack(y), result, k, res
+    if lanes is None:
+        y0_s = tuple(_jnp(v, dtype) for v in sc.split(y0))
+    else:
+        y0_s = tuple(y0[:, i] for i in range(m))
+    init = (y0_s, full(0, jnp.int32), full(-1, jnp.int32), full(jnp.inf, dtype),
+            full(solver.chord_steps == 0, jnp.bool_), full(solver.max_steps, jnp.int32))
+    y, k, result, res, _, _ = _while_lanes(lambda c: c[2] < 0, outer_body, init, lanes)
+    return jnp.stack(y, axis=-1), result, k, res
 
 
 def _jnp(v, dtype):
@@ -922,27 +966,21 @@ def _scalar_core(fn, solver, y0, args):
     # Both one trajectory and a batch replay the programs with their shared values
     # materialised (ScalarFunction's batched layout): left to XLA, one trajectory's
     # fusions recompute them (car-pendulum hamel, `simulate` of 20000 steps: 2.0e5 steps/s
-    # and 9-10 s to compile, materialised 6-7e5 and 5 s). The batch's program is traced once
-    # (custom_vmap): JAX batches a loop's body until its carry settles.
+    # and 9-10 s to compile, materialised 6-7e5 and 5 s). Under vmap the solve is written
+    # on vectors over the batch (custom_vmap, _iterate_scalar's lanes) rather than batched
+    # by JAX, which retraces the loops' bodies until their carries settle.
     programs = _scalar_programs(fn, y0, args, solver.scalar_jacobian)
-    batched_jaxprs = {}
 
     @jax.custom_batching.custom_vmap
     def solve(y0, args):
-        return _iterate_scalar(programs, y0, args, solver, batched=True)
+        return _iterate_scalar(programs, y0, args, solver)
 
     @solve.def_vmap
     def _solve_batched(axis_size, in_batched, y0, args):
-        in_axes = tuple(jax.tree.map(lambda b: 0 if b else None, tuple(in_batched)))
-        key = (axis_size, jax.tree.structure(in_axes), tuple(jax.tree.leaves(
-            in_axes, is_leaf=lambda x: x is None)))
-        if key not in batched_jaxprs:
-            batched_jaxprs[key] = jax.make_jaxpr(jax.vmap(
-                lambda y0, args: _iterate_scalar(programs, y0, args, solver, batched=True),
-                in_axes=in_axes, axis_size=axis_size))(y0, args)
-        closed = batched_jaxprs[key]
-        out = jax.core.eval_jaxpr(closed.jaxpr, closed.consts, *jax.tree.leaves((y0, args)))
-        out = tuple(out)
+        y0_batched, args_batched = in_batched
+        if not y0_batched:
+            y0 = jnp.broadcast_to(y0, (axis_size, *y0.shape))
+        out = _iterate_scalar(programs, y0, (args, args_batched), solver, lanes=axis_size)
         return out, (True,) * len(out)
 
     return solve(y0, args)

@@ -36,6 +36,7 @@ from __future__ import annotations
 import functools
 import itertools
 import math
+import weakref
 from collections.abc import Callable
 from typing import Any
 
@@ -45,7 +46,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-__all__ = ["ScalarFunction", "join", "on_scalars", "scalarize", "split"]
+__all__ = ["ScalarFunction", "join", "on_scalars", "program_for", "scalarize", "split"]
 
 
 # ---------------------------------------------------------------------------------------
@@ -241,7 +242,7 @@ def _apply(name, params, args, dtype, primitive=None):
     if primitive is None:
         primitive = _PRIMITIVES[name]
     # lax primitives take operands of one dtype; constants carry theirs already.
-    out = primitive.bind(*[_operand(a) for a in args], **_bind_params(name, params))
+    out = primitive.bind(*_operands(args), **_bind_params(name, params))
     return out
 
 
@@ -249,6 +250,21 @@ def _operand(a):
     if _is_const(a):
         return np.asarray(a)
     return a
+
+
+def _operands(args):
+    """The operands of one operation, of one shape: a "scalar" may be a vector over a batch
+    (a program replayed on a structure of arrays, :func:`_iterate_scalar` with ``lanes`` in
+    :mod:`lgvi_jax.newton`), and constants and unbatched values then enter broadcast."""
+    ops = [_operand(a) for a in args]
+    shape = ()
+    for o in ops:
+        if np.ndim(o):
+            shape = np.shape(o)
+            break
+    if shape:
+        ops = [o if np.shape(o) == shape else lax.broadcast_in_dim(o, shape, ()) for o in ops]
+    return ops
 
 
 def _dt(x):
@@ -773,13 +789,41 @@ def _concrete(c) -> bool:
     return not isinstance(c, jax.core.Tracer)
 
 
+#: Scalar programs of :func:`scalarize` and :func:`on_scalars`, weakly keyed by the function
+#: (for a bound method its function, with the instance in the inner key), per instance and
+#: shapes, dtypes and tree structure of the arguments.
+_PROGRAMS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def program_for(fn: Callable, *example) -> ScalarFunction:
+    """``ScalarFunction(fn, *example)``, built once per function, instance (for a bound
+    method) and argument shapes, dtypes and tree structure: a rollout otherwise traces the
+    same program at every place that calls it (the initial guess of a step four times in a
+    batched sweep). Not remembered: programs of functions that close over traced values,
+    and functions or instances that cannot be hashed or weakly referenced."""
+    owner = getattr(fn, "__func__", fn)
+    leaves, tree = jax.tree.flatten(example)
+    key = (getattr(fn, "__self__", None), tree,
+           tuple((jnp.shape(x), jnp.result_type(x)) for x in leaves))
+    try:
+        per_fn = _PROGRAMS.setdefault(owner, {})
+        found = per_fn.get(key)
+    except TypeError:
+        return ScalarFunction(fn, *example)
+    if found is None:
+        found = ScalarFunction(fn, *example)
+        if not found.traced_consts:
+            per_fn[key] = found
+    return found
+
+
 def scalarize(fn: Callable) -> Callable:
     """``fn`` evaluated through scalar elementwise operations (module docstring): same
     inputs, same outputs, to the order of floating-point sums."""
 
     @functools.wraps(fn)
     def wrapped(*args):
-        sf = ScalarFunction(fn, *args)
+        sf = program_for(fn, *args)
         outs = sf(*jax.tree.map(split, args))
         return jax.tree.map(lambda o, s: join(o, s.dtype).reshape(s.shape), outs,
                             sf.out_shape, is_leaf=lambda x: isinstance(x, np.ndarray))
@@ -803,7 +847,7 @@ def on_scalars(fn: Callable, *example) -> Callable:
     if sum(math.prod(jnp.shape(x)) for x in jax.tree.leaves(example)) > ON_SCALARS_MAX_ENTRIES:
         return fn
     try:
-        program = ScalarFunction(fn, *example)
+        program = program_for(fn, *example)
     except NotImplementedError:
         return fn
 

@@ -301,6 +301,27 @@ def _diagnostics(model, state):
     return out
 
 
+def _per_member(tree):
+    """``tree`` itself; under ``vmap``, with every leaf batched (unbatched ones broadcast).
+    For a loop's initial carry: JAX batches a loop by searching for the carries that become
+    batched, retracing the body (with every Newton solve in it) at each search step; a carry
+    batched from the start settles at once."""
+
+    @jax.custom_batching.custom_vmap
+    def ident(tree):
+        return tree
+
+    @ident.def_vmap
+    def _rule(axis_size, in_batched, tree):
+        (batched,) = in_batched
+        out = jax.tree.map(
+            lambda x, b: x if b else jnp.broadcast_to(x, (axis_size, *jnp.shape(x))),
+            tree, batched)
+        return out, jax.tree.map(lambda _: True, out)
+
+    return ident(tree)
+
+
 def _sweep_one(model, method, state0, dt, n_steps, sample_every):
     """One trajectory of ``n_steps`` (a run-time value) with running metrics."""
     # On scalars (scalarize.on_scalars): the invariants of a model derived by autodiff (the
@@ -358,7 +379,7 @@ def _sweep_one(model, method, state0, dt, n_steps, sample_every):
     init = (state0, jnp.asarray(RESULTS.successful, jnp.int32), jnp.asarray(-1, jnp.int32),
             jnp.zeros((), ftype), method.init_solver_state(model, state0, dt), int0, int0,
             nan_metrics, zero_metrics)
-    carry = jax.lax.fori_loop(int0, n_steps, body, init)
+    carry = jax.lax.fori_loop(int0, n_steps, body, _per_member(init))
     _, code, failed_step, _, _, it_sum, it_max, maxima, last = carry
     steps_done = jnp.where(failed_step >= 0, failed_step + 1, n_steps)
     out = {
@@ -389,7 +410,7 @@ def _final_one(model, method, state0, dt, n_steps, sample_every):
     init = (state0, jnp.asarray(RESULTS.successful, jnp.int32), jnp.asarray(-1, jnp.int32),
             jnp.zeros((), dt.dtype), method.init_solver_state(model, state0, dt))
     state, code, failed_step, _, _ = jax.lax.fori_loop(jnp.asarray(0, jnp.int32), n_steps,
-                                                       body, init)
+                                                       body, _per_member(init))
     return {"state": state, "result": code, "failed_step": failed_step}
 
 

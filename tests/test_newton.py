@@ -220,6 +220,45 @@ def test_vmap_equals_loop():
         assert int(steps[i]) == int(s)
 
 
+def scaled_cubic(y, args):
+    a, s = args
+    return s * (y**3 - a) + 0.1 * jnp.sin(y[::-1])
+
+
+@pytest.mark.parametrize("chord_steps", [0, 3])
+def test_scalar_solve_under_vmap_equals_a_loop(chord_steps):
+    """The scalar solve batched (written on vectors over the batch, not batched by JAX)
+    gives every member its own solve: the same values bit for bit, iterations and result
+    codes as the solve alone, with members that converge at once, that leave the chord
+    phase for the Newton fallback (far guess), that fail (non-finite data) and that run
+    out of iterations; one argument unbatched."""
+    solver = Newton(scalar=True, chord_steps=chord_steps, max_steps=8)
+    a = jnp.array([[2.0, 3.0], [5.0, 7.0], [1.0, 1.0], [0.1, 100.0], [jnp.nan, 1.0],
+                   [1e30, 2.0]])
+    y0 = jnp.array([[1.26, 1.44], [1.0, 1.0], [1.0, 1.0], [3.0, 0.2], [1.0, 1.0],
+                    [1.0, 1.0]])
+    s = jnp.asarray(1.5)
+
+    def solve(y0, a):
+        sol = newton_solve(scaled_cubic, y0, (a, s), solver)
+        return sol.value, sol.result, sol.num_steps, sol.residual
+
+    batched = jax.jit(jax.vmap(solve))(y0, a)
+    alone = jax.jit(solve)
+    codes = set()
+    for i in range(a.shape[0]):
+        for got, want in zip(batched, alone(y0[i], a[i]), strict=True):
+            np.testing.assert_array_equal(np.asarray(got[i]), np.asarray(want))
+        codes.add(int(batched[1][i]))
+    # the cases above reach success, non-finite data and the iteration cap
+    assert {RESULTS.successful, RESULTS.nonfinite, RESULTS.max_steps_reached} <= codes
+    # the guess unbatched too (broadcast to the batch)
+    one_guess = jax.jit(jax.vmap(solve, in_axes=(None, 0)))(y0[0], a)
+    for i in range(a.shape[0]):
+        np.testing.assert_array_equal(np.asarray(one_guess[0][i]),
+                                      np.asarray(alone(y0[0], a[i])[0]))
+
+
 def test_bad_settings_rejected():
     with pytest.raises(ValueError, match="rtol"):
         Newton(rtol=-1.0)

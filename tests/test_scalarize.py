@@ -27,7 +27,7 @@ from lgvi_jax.integrators.lie import LGVI, HamelVI
 from lgvi_jax.models.rigid import AbstractRigidBodyModel
 from lgvi_jax.models.rigid_bodies import rotational_kinetic
 from lgvi_jax.newton import RESULTS, Newton, newton_solve
-from lgvi_jax.scalarize import ScalarFunction, join, scalarize, split
+from lgvi_jax.scalarize import ScalarFunction, join, program_for, scalarize, split
 
 ROUNDING = 1e-11  # module docstring
 
@@ -544,3 +544,41 @@ def test_the_sweep_equals_the_array_engine(tmp_path, capsys):
         # measured 9e-12 relative, bound 1e-6
         assert float(row["energy_error_max"]) == pytest.approx(
             float(ref["energy_error_max"][i]), rel=1e-6, abs=1e-13)
+
+
+def test_programs_are_built_once_per_function_and_shapes():
+    """program_for: one scalar program per function (per instance for a bound method) and
+    argument shapes; a different shape or instance gets its own; a function that closes
+    over a traced value is not remembered (its program takes that value as an input)."""
+
+    class Scaled:
+        def __init__(self, k):
+            self.k = k
+
+        def __hash__(self):
+            return hash(self.k)
+
+        def __eq__(self, other):
+            return isinstance(other, Scaled) and other.k == self.k
+
+        def f(self, x):
+            return self.k * jnp.cross(x, x[::-1])
+
+    a, b = Scaled(2.0), Scaled(3.0)
+    x3, x6 = jnp.ones(3), jnp.ones((2, 3))
+    assert program_for(a.f, x3) is program_for(a.f, x3)
+    assert program_for(a.f, x3) is not program_for(b.f, x3)
+    assert program_for(a.f, x3) is not program_for(a.f, x6)
+    x = jnp.array([0.3, -1.2, 0.7])
+    np.testing.assert_allclose(scalarize(b.f)(x), b.f(x), rtol=0, atol=1e-15)
+
+    built = []
+
+    @jax.jit
+    def outer(c, x):
+        g = lambda y: c * y  # noqa: E731  (closes over the traced c)
+        built.append(program_for(g, x))
+        return scalarize(g)(x)
+
+    np.testing.assert_allclose(outer(2.0, x), 2.0 * x)
+    assert built[0].traced_consts
