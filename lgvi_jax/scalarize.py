@@ -480,17 +480,20 @@ def _eval_eqn(eqn, invals) -> list[np.ndarray]:
         idx = index[()]
         if _is_const(idx):
             return _call_closed(branches[int(idx)], ops)
-        results = [_call_closed(br, ops) for br in branches]
-        outs = []
-        for k, oa in enumerate(out_avals):
-            arr = np.empty(oa.shape, dtype=object)
-            for el in np.ndindex(oa.shape):
-                cases = [r[k][el] for r in results]
-                arr[el] = _apply("select_n", {}, [idx, *cases], oa.dtype, lax.select_n_p)
-            outs.append(arr)
-        return outs
+        # A branch of scalars: only the branch taken runs (replayed on a batch's vectors,
+        # _replay_cond). Scalar outputs of the branches, as the loop's carries are.
+        dtypes = _flat_dtypes(out_avals)
+
+        def branch(br):
+            return lambda: [_materialise(v, d) for v, d in
+                            zip(_flatten(_call_closed(br, ops)), dtypes, strict=True)]
+
+        flat = jax.lax.switch(idx, [branch(br) for br in branches])
+        return _unflatten(list(flat), out_avals)
     if name == "while":
         return _while(eqn, invals)
+    if name in ("empty", "empty2"):  # a residual of a branch not taken (cond's transpose)
+        return [split(np.zeros(v.aval.shape, v.aval.dtype)) for v in eqn.outvars]
     if name in _IDENTITY:
         return list(invals)
     raise NotImplementedError(
@@ -651,6 +654,12 @@ def _simplify_program(closed):
                 subst[eqn.outvars[0]] = seen[k]
                 continue
             seen[k] = eqn.outvars[0]
+        elif name == "cond":  # the same branches on the same operands (one angle's cond)
+            k = ("cond", str(eqn.params["branches"]), tuple(key(v) for v in invars))
+            if k in seen:
+                subst.update(zip(eqn.outvars, seen[k], strict=True))
+                continue
+            seen[k] = eqn.outvars
         eqns.append(eqn.replace(invars=invars))
     outvars = [sub(v) for v in jaxpr.outvars]
     live = {v for v in outvars if not isinstance(v, jex.core.Literal)}
@@ -754,6 +763,8 @@ def _replay(closed, flat, keep, one=None):
             outs = [sine if name == "sin" else cosine]
         elif name in _ELEMENTWISE and len(eqn.outvars) == 1 and not eqn.outvars[0].aval.shape:
             outs = [_apply(name, eqn.params, invals, eqn.outvars[0].aval.dtype, eqn.primitive)]
+        elif name == "cond":
+            outs = _replay_cond(eqn, invals, one)
         else:
             subfuns, params = eqn.primitive.get_bind_params(eqn.params)
             outs = eqn.primitive.bind(*subfuns, *[_operand(x) for x in invals], **params)
@@ -763,6 +774,39 @@ def _replay(closed, flat, keep, one=None):
                 val = val / one
             env[var] = val
     return [read(v) for v in jaxpr.outvars]
+
+
+def _replay_cond(eqn, invals, one):
+    """A scalar program's ``cond`` (:func:`_eval_eqn`) replayed: with a constant index the
+    branch itself; with one index a ``cond`` of the branches replayed; on a batch's vectors
+    (an index per member) every branch and a selection per member."""
+    index, *ops = invals
+    branches = eqn.params["branches"]
+    dtypes = [v.aval.dtype for v in eqn.outvars]
+
+    def run(br):
+        return _replay(br, ops, frozenset(), one)
+
+    if _is_const(index):
+        return run(branches[int(index)])
+    lanes = jnp.shape(index)
+    if not lanes:  # one member (or each member under vmap)
+        return jax.lax.switch(index, [lambda br=br: [_jnp_value(v, d) for v, d in
+                                                     zip(run(br), dtypes, strict=True)]
+                                      for br in branches])
+
+    def vectors(vals):
+        return [jnp.broadcast_to(_jnp_value(v, d), lanes) for v, d in
+                zip(vals, dtypes, strict=True)]
+
+    # Every branch and a selection per member, as JAX batches a cond (computing a branch
+    # only where some member takes it: faster batches, longer compiles; CHANGELOG).
+    results = [vectors(run(br)) for br in branches]
+    return [jax.lax.select_n(index, *[r[k] for r in results]) for k in range(len(dtypes))]
+
+
+def _jnp_value(v, dtype):
+    return jnp.asarray(np.asarray(v) if _is_const(v) else v, dtype)
 
 
 def _runtime_one(flat):

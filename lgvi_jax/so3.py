@@ -150,15 +150,35 @@ def _poly(x: jax.Array, coeffs: tuple[float, ...]) -> jax.Array:
     return out
 
 
-def _coefficient(theta_sq: jax.Array, taylor: tuple[float, ...], closed) -> jax.Array:
-    """A function of theta, from its Taylor coefficients in theta^2 or its closed form.
+def _coefficients(theta_sq: jax.Array, *specs) -> tuple[jax.Array, ...]:
+    """Functions of theta, each from its Taylor coefficients in theta^2 or its closed form;
+    ``specs``: ``(taylor, closed)`` pairs.
 
     ``closed(theta)`` is only ever evaluated at ``theta >= 0.1`` (double-where trick), so it
     may divide by ``theta`` freely; gradients through the unselected branch are exactly zero.
+    For one angle (a 0-d ``theta_sq``) one ``lax.cond`` for all of them: only the branch
+    taken is computed (under ``vmap`` JAX selects between both, as ``where`` does), so that
+    the closed forms' trigonometry, never needed at the small angles of a step, costs
+    nothing there.
     """
+
+    def series(t2):
+        return tuple(_poly(t2, taylor) for taylor, _ in specs)
+
+    def closed_form(t2):
+        t = jnp.sqrt(jnp.where(t2 < _TAYLOR_THETA_SQ, 1.0, t2))
+        return tuple(closed(t) for _, closed in specs)
+
     small = theta_sq < _TAYLOR_THETA_SQ
-    safe_sq = jnp.where(small, 1.0, theta_sq)
-    return jnp.where(small, _poly(theta_sq, taylor), closed(jnp.sqrt(safe_sq)))
+    if jnp.ndim(theta_sq) == 0:
+        return jax.lax.cond(small, series, closed_form, theta_sq)
+    return tuple(jnp.where(small, a, b)
+                 for a, b in zip(series(theta_sq), closed_form(theta_sq), strict=True))
+
+
+def _coefficient(theta_sq: jax.Array, taylor: tuple[float, ...], closed) -> jax.Array:
+    """One function of theta (:func:`_coefficients`)."""
+    return _coefficients(theta_sq, (taylor, closed))[0]
 
 
 def _theta_sq(w: jax.Array) -> jax.Array:
@@ -166,41 +186,49 @@ def _theta_sq(w: jax.Array) -> jax.Array:
 
 
 # sin(t)/t = sum (-1)^k t^2k / (2k+1)!
+_SINC = (
+    (1.0, -1.0 / 6, 1.0 / 120, -1.0 / 5040, 1.0 / 362880, -1.0 / 39916800),
+    lambda t: jnp.sin(t) / t,
+)
+
+
 def _sinc(theta_sq: jax.Array) -> jax.Array:
-    return _coefficient(
-        theta_sq,
-        (1.0, -1.0 / 6, 1.0 / 120, -1.0 / 5040, 1.0 / 362880, -1.0 / 39916800),
-        lambda t: jnp.sin(t) / t,
-    )
+    return _coefficient(theta_sq, *_SINC)
 
 
 # (1 - cos t)/t^2 = sum (-1)^k t^2k / (2k+2)!   (closed form 2 sin^2(t/2)/t^2: no cancellation)
+_ONE_MINUS_COS = (
+    (0.5, -1.0 / 24, 1.0 / 720, -1.0 / 40320, 1.0 / 3628800, -1.0 / 479001600),
+    lambda t: 2.0 * jnp.sin(0.5 * t) ** 2 / (t * t),
+)
+
+
 def _one_minus_cos(theta_sq: jax.Array) -> jax.Array:
-    return _coefficient(
-        theta_sq,
-        (0.5, -1.0 / 24, 1.0 / 720, -1.0 / 40320, 1.0 / 3628800, -1.0 / 479001600),
-        lambda t: 2.0 * jnp.sin(0.5 * t) ** 2 / (t * t),
-    )
+    return _coefficient(theta_sq, *_ONE_MINUS_COS)
 
 
 # (t - sin t)/t^3 = sum (-1)^k t^2k / (2k+3)!
+_T_MINUS_SIN = (
+    (1.0 / 6, -1.0 / 120, 1.0 / 5040, -1.0 / 362880, 1.0 / 39916800, -1.0 / 6227020800),
+    lambda t: (t - jnp.sin(t)) / (t * t * t),
+)
+
+
 def _t_minus_sin(theta_sq: jax.Array) -> jax.Array:
-    return _coefficient(
-        theta_sq,
-        (1.0 / 6, -1.0 / 120, 1.0 / 5040, -1.0 / 362880, 1.0 / 39916800, -1.0 / 6227020800),
-        lambda t: (t - jnp.sin(t)) / (t * t * t),
-    )
+    return _coefficient(theta_sq, *_T_MINUS_SIN)
 
 
 # 1/t^2 - (1 + cos t)/(2 t sin t) = 1/t^2 - cot(t/2)/(2t)
 #   = 1/12 + t^2/720 + t^4/30240 + t^6/1209600 + t^8/47900160 + ...   (from the Laurent
 #   series of cot). cot(t/2) is written as cos(t/2)/sin(t/2) so that t = pi is not 0/0.
+_DEXP_INV = (
+    (1.0 / 12, 1.0 / 720, 1.0 / 30240, 1.0 / 1209600, 1.0 / 47900160),
+    lambda t: 1.0 / (t * t) - jnp.cos(0.5 * t) / (2.0 * t * jnp.sin(0.5 * t)),
+)
+
+
 def _dexp_inv_coeff(theta_sq: jax.Array) -> jax.Array:
-    return _coefficient(
-        theta_sq,
-        (1.0 / 12, 1.0 / 720, 1.0 / 30240, 1.0 / 1209600, 1.0 / 47900160),
-        lambda t: 1.0 / (t * t) - jnp.cos(0.5 * t) / (2.0 * t * jnp.sin(0.5 * t)),
-    )
+    return _coefficient(theta_sq, *_DEXP_INV)
 
 
 # ------------------------------------------------------------------------- hat and vee
@@ -265,8 +293,7 @@ def exp(w: Any) -> jax.Array:
     """
     w = _as_float(w)
     t2 = _theta_sq(w)
-    a = _sinc(t2)[..., None, None]
-    b = _one_minus_cos(t2)[..., None, None]
+    a, b = (c[..., None, None] for c in _coefficients(t2, _SINC, _ONE_MINUS_COS))
     return _eye_like(w) + a * hat(w) + b * _hat_sq(w)
 
 
@@ -281,7 +308,8 @@ def exp_minus_identity(w: Any) -> jax.Array:
     """
     w = _as_float(w)
     t2 = _theta_sq(w)
-    return _sinc(t2)[..., None, None] * hat(w) + _one_minus_cos(t2)[..., None, None] * _hat_sq(w)
+    a, b = (c[..., None, None] for c in _coefficients(t2, _SINC, _ONE_MINUS_COS))
+    return a * hat(w) + b * _hat_sq(w)
 
 
 def log(R: Any) -> jax.Array:
@@ -417,8 +445,7 @@ def dexp(w: Any) -> jax.Array:
     """
     w = _as_float(w)
     t2 = _theta_sq(w)
-    b = _one_minus_cos(t2)[..., None, None]
-    c = _t_minus_sin(t2)[..., None, None]
+    b, c = (x[..., None, None] for x in _coefficients(t2, _ONE_MINUS_COS, _T_MINUS_SIN))
     return _eye_like(w) - b * hat(w) + c * _hat_sq(w)
 
 
@@ -453,7 +480,9 @@ def dexp_left_inv(w: Any) -> jax.Array:
     :math:`J_l(w)^{-1} = J_r(-w)^{-1} = I - \tfrac12\hat w + \Bigl(\frac{1}{\theta^2} -
     \frac{1+\cos\theta}{2\theta\sin\theta}\Bigr)\hat w^2`.
     """
-    return dexp_inv(-_as_float(w))
+    w = _as_float(w)
+    d = _dexp_inv_coeff(_theta_sq(w))[..., None, None]
+    return _eye_like(w) - 0.5 * hat(w) + d * _hat_sq(w)
 
 
 def dcayley(w: Any) -> jax.Array:

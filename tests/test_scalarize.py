@@ -112,6 +112,53 @@ def test_common_subexpressions_are_merged_and_dead_code_removed():
     assert float(sf(split(jnp.asarray(3.0)), split(jnp.asarray(5.0)))[()]) == 30.0
 
 
+def _primitives(jaxpr):
+    """The primitives of ``jaxpr``, also those of the branches of a cond."""
+    out = set()
+    for e in jaxpr.eqns:
+        out.add(e.primitive.name)
+        for p in e.params.values():
+            for sub in p if isinstance(p, tuple | list) else (p,):
+                if hasattr(sub, "eqns") or hasattr(sub, "jaxpr"):
+                    out |= _primitives(getattr(sub, "jaxpr", sub))
+    return out
+
+
+def test_a_cond_stays_a_branch_on_one_member_and_selects_on_a_batch():
+    """A scalar program keeps a ``cond`` of a traced predicate as a branch (one member:
+    only the branch taken runs; the so3 maps' closed forms behind their Taylor series) and
+    the same conds on the same operands once (``dexp_inv`` and ``dexp_left_inv`` share
+    their coefficient). Replayed on a batch's vectors (the Newton solve's layout) with
+    members on both sides of the predicate, and with all on one side, it equals ``vmap``
+    of the function (same operations per member: bound ROUNDING)."""
+    def f(w):
+        return so3.dexp_inv(w), so3.dexp_left_inv(w), so3.exp_minus_identity(w)
+
+    sf = ScalarFunction(f, jnp.zeros(3))
+    conds = [e for e in sf.program.jaxpr.eqns if e.primitive.name == "cond"]
+    assert len(conds) == 2  # one per angle and function of it: exp's pair, dexp_inv's
+    single = jax.make_jaxpr(lambda w: join(sf(split(w))[0]))(jnp.ones(3))
+    assert "cond" in _primitives(single.jaxpr)
+
+    rng = np.random.default_rng(5)
+    mixed = rng.normal(size=(16, 3)) * np.where(np.arange(16) % 2, 0.01, 1.0)[:, None]
+    for w in (mixed, 0.01 * rng.normal(size=(16, 3)), rng.normal(size=(16, 3))):
+        w = jnp.asarray(w)
+        lanes = np.empty(3, dtype=object)
+        for i in range(3):
+            lanes[i] = w[:, i]
+        got = sf(lanes, batched=True)
+        expected = jax.vmap(f)(w)
+        for g, e in zip(got, expected, strict=True):
+            g = np.stack([np.broadcast_to(np.asarray(x), (16,)) for x in g.reshape(-1)], -1)
+            np.testing.assert_allclose(g, np.asarray(e).reshape(16, -1), rtol=0,
+                                       atol=ROUNDING)
+        # one member: the branch taken
+        one = sf(split(w[0]))
+        for g, e in zip(one, f(w[0]), strict=True):
+            np.testing.assert_allclose(np.asarray(join(g)), e, rtol=0, atol=ROUNDING)
+
+
 @pytest.mark.parametrize("method", [LGVI(), HamelVI()], ids=["lgvi", "hamel"])
 def test_newton_jacobian_program_is_the_smaller_mode_and_equals_jacfwd(method):
     """The scalar engine's Jacobian program is forward or reverse mode, whichever has fewer
@@ -199,10 +246,9 @@ def test_batched_replay_emits_sine_and_cosine_by_arithmetic():
         return join(sf(split(x)))
 
     batched = jax.vmap(replayed)
-    prims = {e.primitive.name for e in jax.make_jaxpr(batched)(w).jaxpr.eqns}
+    prims = _primitives(jax.make_jaxpr(batched)(w).jaxpr)
     assert "sin" not in prims and "cos" not in prims
-    single = {e.primitive.name for e in jax.make_jaxpr(replayed)(w[0]).jaxpr.eqns}
-    assert "sin" in single
+    assert "sin" in _primitives(jax.make_jaxpr(replayed)(w[0]).jaxpr)  # in a branch
     np.testing.assert_allclose(batched(w), jax.vmap(f)(w), rtol=0, atol=2e-14)
     np.testing.assert_allclose(replayed(w[0]), f(w[0]), rtol=0, atol=1e-15)
 
