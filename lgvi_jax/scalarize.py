@@ -25,7 +25,8 @@ The values are those of the original function up to the order of floating-point 
 Supported: elementwise primitives, ``broadcast_in_dim``, ``reshape``, ``squeeze``,
 ``expand_dims``, ``transpose``, ``slice``, ``concatenate``, ``pad``, ``split``, ``stack``,
 ``unstack``, ``rev``, ``iota``, ``reduce_sum/max/min/and/or``, ``dot_general``, ``select_n``,
-``cond`` (both branches, selected), nested ``jit`` and the primal of ``custom_jvp`` /
+``cond`` (a branch of scalars; on a batch's vectors both branches, selected per member),
+``while``, nested ``jit`` and the primal of ``custom_jvp`` /
 ``custom_vjp`` calls (the result is differentiated through its scalar operations, which is
 exact since they are the same function). Anything else raises ``NotImplementedError``
 naming the primitive.
@@ -791,22 +792,18 @@ def _replay_cond(eqn, invals, one):
         return run(branches[int(index)])
     lanes = jnp.shape(index)
     if not lanes:  # one member (or each member under vmap)
-        return jax.lax.switch(index, [lambda br=br: [_jnp_value(v, d) for v, d in
+        return jax.lax.switch(index, [lambda br=br: [_materialise(v, d) for v, d in
                                                      zip(run(br), dtypes, strict=True)]
                                       for br in branches])
 
     def vectors(vals):
-        return [jnp.broadcast_to(_jnp_value(v, d), lanes) for v, d in
+        return [jnp.broadcast_to(_materialise(v, d), lanes) for v, d in
                 zip(vals, dtypes, strict=True)]
 
     # Every branch and a selection per member, as JAX batches a cond (computing a branch
     # only where some member takes it: faster batches, longer compiles; CHANGELOG).
     results = [vectors(run(br)) for br in branches]
     return [jax.lax.select_n(index, *[r[k] for r in results]) for k in range(len(dtypes))]
-
-
-def _jnp_value(v, dtype):
-    return jnp.asarray(np.asarray(v) if _is_const(v) else v, dtype)
 
 
 def _runtime_one(flat):
