@@ -483,13 +483,8 @@ def _eval_eqn(eqn, invals) -> list[np.ndarray]:
             return _call_closed(branches[int(idx)], ops)
         # A branch of scalars: only the branch taken runs (replayed on a batch's vectors,
         # _replay_cond). Scalar outputs of the branches, as the loop's carries are.
-        dtypes = _flat_dtypes(out_avals)
-
-        def branch(br):
-            return lambda: [_materialise(v, d) for v, d in
-                            zip(_flatten(_call_closed(br, ops)), dtypes, strict=True)]
-
-        flat = jax.lax.switch(idx, [branch(br) for br in branches])
+        flat = _switch(idx, [lambda br=br: _flatten(_call_closed(br, ops)) for br in branches],
+                       _flat_dtypes(out_avals))
         return _unflatten(list(flat), out_avals)
     if name == "while":
         return _while(eqn, invals)
@@ -777,6 +772,14 @@ def _replay(closed, flat, keep, one=None):
     return [read(v) for v in jaxpr.outvars]
 
 
+def _switch(index, branches, dtypes):
+    """``lax.switch`` over ``branches``, thunks returning flat lists of scalars (constants
+    among them), each output a JAX value of its dtype in ``dtypes``."""
+    return jax.lax.switch(index, [lambda b=b: [_materialise(v, d) for v, d in
+                                               zip(b(), dtypes, strict=True)]
+                                  for b in branches])
+
+
 def _replay_cond(eqn, invals, one):
     """A scalar program's ``cond`` (:func:`_eval_eqn`) replayed: with a constant index the
     branch itself; with one index a ``cond`` of the branches replayed; on a batch's vectors
@@ -792,9 +795,7 @@ def _replay_cond(eqn, invals, one):
         return run(branches[int(index)])
     lanes = jnp.shape(index)
     if not lanes:  # one member (or each member under vmap)
-        return jax.lax.switch(index, [lambda br=br: [_materialise(v, d) for v, d in
-                                                     zip(run(br), dtypes, strict=True)]
-                                      for br in branches])
+        return _switch(index, [lambda br=br: run(br) for br in branches], dtypes)
 
     def vectors(vals):
         return [jnp.broadcast_to(_materialise(v, d), lanes) for v, d in

@@ -458,9 +458,16 @@ def dexp_inv(w: Any) -> jax.Array:
     at :math:`\theta = 2\pi`), Taylor series :math:`\tfrac1{12} + \tfrac{\theta^2}{720} +
     \dots` for small :math:`\theta`.
     """
+    return _dexp_inv(w, 0.5)
+
+
+def _dexp_inv(w: Any, half: float) -> jax.Array:
+    """``I + half ŵ + d ŵ²``: :func:`dexp_inv` (``half = 1/2``) and :func:`dexp_left_inv`
+    (``-1/2``; ``ŵ²`` and ``d`` are even in ``w``), computed from ``w`` itself so that the
+    two share the coefficient's evaluation."""
     w = _as_float(w)
     d = _dexp_inv_coeff(_theta_sq(w))[..., None, None]
-    return _eye_like(w) + 0.5 * hat(w) + d * _hat_sq(w)
+    return _eye_like(w) + half * hat(w) + d * _hat_sq(w)
 
 
 def dexp_left(w: Any) -> jax.Array:
@@ -480,9 +487,7 @@ def dexp_left_inv(w: Any) -> jax.Array:
     :math:`J_l(w)^{-1} = J_r(-w)^{-1} = I - \tfrac12\hat w + \Bigl(\frac{1}{\theta^2} -
     \frac{1+\cos\theta}{2\theta\sin\theta}\Bigr)\hat w^2`.
     """
-    w = _as_float(w)
-    d = _dexp_inv_coeff(_theta_sq(w))[..., None, None]
-    return _eye_like(w) - 0.5 * hat(w) + d * _hat_sq(w)
+    return _dexp_inv(w, -0.5)
 
 
 def dcayley(w: Any) -> jax.Array:

@@ -463,8 +463,8 @@ class HamelVI(AbstractLieVI):
             return eye + W, eye - W
         # B = dτ⁻¹(w) τ(w)ᵀ, the inverse left-trivialised differential, equals dτ⁻¹(−w)
         # (J_l(w) = τ(w) J_r(w) = J_r(−w), for exp and Cayley alike): the same matrix
-        # without a product with τ(w) (tested against the product); for exp written as
-        # dexp_left_inv(w), whose coefficient is dexp_inv(w)'s (one evaluation).
+        # without a product with τ(w) (tested against the product), written as the left
+        # inverse at w (for exp: one evaluation of the coefficient both share).
         if self.map == "exp":
             return so3.dexp_inv(w), so3.dexp_left_inv(w)
-        return so3.dcayley_inv(w), so3.dcayley_inv(-w)
+        return so3.dcayley_inv(w), so3.dcayley_left_inv(w)
