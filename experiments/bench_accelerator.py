@@ -53,7 +53,7 @@ def _bench(model, method, s0, steps: int, batch: int, repeats: int) -> dict:
 
 
 def _numba_rows(steps: int, batch: int, methods) -> list[dict]:
-    from lgvi_jax.experiments.bench_throughput import _load_numba, _numpy_states
+    from lgvi_jax.bench.throughput import _load_numba, _numpy_states
 
     nb, used = _load_numba(methods, print)  # compiled once, before the timed runs
     if nb is None:

@@ -19,7 +19,6 @@ Run:  ``python experiments/bench_gradients.py --out DIR [--quick]``; writes
 
 from __future__ import annotations
 
-import argparse
 import json
 import platform
 import sys
@@ -135,14 +134,7 @@ def run(out_dir, quick: bool = False, log: Callable = print) -> dict:
     return results
 
 
-def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", required=True, help="output folder")
-    parser.add_argument("--quick", action="store_true", help="10^3 steps, one checkpoint K")
-    args = parser.parse_args(argv)
-    run(args.out, quick=args.quick, log=lambda m: print(m, file=sys.stderr, flush=True))
-    return 0
-
-
 if __name__ == "__main__":
-    sys.exit(main())
+    from lgvi_jax.studies import script_main
+
+    sys.exit(script_main(run, __doc__, quick_help='10^3 steps, one checkpoint K'))

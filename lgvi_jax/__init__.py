@@ -6,12 +6,15 @@ compiling a ``while`` loop as one function and selects XLA's elemental emitter, 
 has already started or ``LGVI_JAX_XLA_TUNING=0`` (:mod:`lgvi_jax._xla`: rollouts of one
 trajectory ~3x faster, compiles 20-35 % faster).
 
-Layout: :mod:`lgvi_jax.so3` (Lie-group maths), :mod:`lgvi_jax.newton` (Newton solver),
-:mod:`lgvi_jax.models` (models defined by their energies), :mod:`lgvi_jax.integrators` (one
-file per method), :mod:`lgvi_jax.simulate` (rollouts), :mod:`lgvi_jax.diagnostics`,
-:mod:`lgvi_jax.plotting`, :mod:`lgvi_jax.scenes`, :mod:`lgvi_jax.inertia` (physically
-consistent inertia parametrisation), :mod:`lgvi_jax.identify` (parameter fitting; imported on
-first use, as it needs optax) and :mod:`lgvi_jax.cli`.
+Layout: :mod:`lgvi_jax.so3` (Lie-group maths), :mod:`lgvi_jax.linalg` (tiny linear
+systems), :mod:`lgvi_jax.newton` (Newton solver), :mod:`lgvi_jax.models` (models defined by
+their energies), :mod:`lgvi_jax.integrators` (one file per method),
+:mod:`lgvi_jax.trajectory` (what a rollout returns, result codes), :mod:`lgvi_jax.simulate`
+(rollouts), :mod:`lgvi_jax.diagnostics`, :mod:`lgvi_jax.plotting`, :mod:`lgvi_jax.scenes`,
+:mod:`lgvi_jax.inertia` (physically consistent inertia parametrisation),
+:mod:`lgvi_jax.identify` (parameter fitting; imported on first use, as it needs optax),
+:mod:`lgvi_jax.sweep`, :mod:`lgvi_jax.studies` (what ``lgvi-jax reproduce`` runs),
+:mod:`lgvi_jax.bench` (what ``lgvi-jax bench`` runs) and :mod:`lgvi_jax.cli`.
 """
 
 import jax
@@ -22,6 +25,7 @@ jax.config.update("jax_enable_x64", True)
 _xla.configure()  # XLA CPU: small loops whole, elemental emitter (lgvi_jax._xla), before JAX starts
 
 from . import diagnostics, inertia, so3  # noqa: E402
+from ._version import __version__  # noqa: E402
 from .integrators import (  # noqa: E402
     EUCLIDEAN_METHODS,
     LGVI,
@@ -48,16 +52,9 @@ from .models import (  # noqa: E402
     PhaseState,
     RigidState,
 )
-from .newton import RESULTS, Newton, NewtonError, NewtonSolution, newton_solve  # noqa: E402
-from .simulate import (  # noqa: E402
-    IntegrationError,
-    Trajectory,
-    final_state,
-    simulate,
-    simulate_timed,
-)
-
-__version__ = "0.1.0"
+from .newton import Newton, NewtonError, NewtonSolution, newton_solve  # noqa: E402
+from .simulate import final_state, simulate, simulate_timed  # noqa: E402
+from .trajectory import RESULTS, IntegrationError, Trajectory  # noqa: E402
 
 __all__ = [
     "EUCLIDEAN_METHODS",

@@ -353,7 +353,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
 
 def cmd_bench(args: argparse.Namespace) -> int:
     configure_devices(args.devices)
-    from .experiments.bench_throughput import ENGINE_CHOICES, PARTS, run
+    from .bench.throughput import ENGINE_CHOICES, PARTS, run
     from .scenes import SCENES
 
     systems = tuple(_csv_list(args.systems, str, "--systems"))

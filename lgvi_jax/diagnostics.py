@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from .newton import RESULTS
+from .trajectory import RESULTS
 
 __all__ = [
     "drift_ratio",
@@ -115,7 +115,7 @@ def environment(**extra) -> dict:
 
     import jax
 
-    from . import __version__
+    from ._version import __version__
 
     return {
         "lgvi_jax": __version__,

@@ -38,7 +38,7 @@ forward-mode Jacobians (:class:`_LevenbergMarquardt`; Moré 1978); ``"lbfgs"``: 
 Optimization*, 2nd ed., ch. 6–7); ``"adam"`` (optax; Kingma & Ba, 2015). The loss is a
 small-residual nonlinear least-squares problem in 6–20 unknowns, where Gauss–Newton
 converges about quadratically, quasi-Newton superlinearly and Adam only linearly
-(``experiments/identify_inertia.py`` measures them). The first two run their iteration on
+(``lgvi_jax/studies/identify_inertia.py`` measures them). The first two run their iteration on
 the host around one compiled program each (the loss and gradient, or the residuals and
 Jacobian), so that a fit compiles the rollout's derivative once.
 """

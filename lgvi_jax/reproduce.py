@@ -25,16 +25,16 @@ __all__ = ["FULL_STAGES", "STAGES", "reproduce"]
 
 #: (name, module): each module has ``run(out_dir, quick=False, log=print) -> dict``.
 STAGES: list[tuple[str, str]] = [
-    ("oscillator", "lgvi_jax.experiments.oscillator"),
-    ("car_pendulum", "lgvi_jax.experiments.car_pendulum"),
+    ("oscillator", "lgvi_jax.studies.oscillator"),
+    ("car_pendulum", "lgvi_jax.studies.car_pendulum"),
 ]
 
 
 #: Extra stages run by ``reproduce(..., full=True)`` (``lgvi-jax reproduce --full``).
 FULL_STAGES: list[tuple[str, str]] = [
-    ("work_precision", "lgvi_jax.experiments.work_precision"),
-    ("stability", "lgvi_jax.experiments.stability"),
-    ("identify_inertia", "lgvi_jax.experiments.identify_inertia"),
+    ("work_precision", "lgvi_jax.studies.work_precision"),
+    ("stability", "lgvi_jax.studies.stability"),
+    ("identify_inertia", "lgvi_jax.studies.identify_inertia"),
 ]
 
 

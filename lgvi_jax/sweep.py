@@ -79,10 +79,10 @@ from ._io import (
     atomic_write_text,
     save_npz_atomic,
 )
-from .newton import RESULTS
 from .progress import Progress
 from .scalarize import on_scalars
 from .simulate import guarded_step_with
+from .trajectory import RESULTS
 
 __all__ = [
     "FORMAT",

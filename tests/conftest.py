@@ -78,7 +78,7 @@ def pytest_configure(config):
 #: cache (above) or from the worker's memory. A test that needs N < 10^4 steps takes the
 #: first N of such a run (the steps are the same; compiling is most of these tests' time,
 #: running 10^4 steps a fraction of a second). 10^4 steps saving every 10th state are also
-#: the quick reproduction's paper runs (experiments/car_pendulum.py, quick mode: the four
+#: the quick reproduction's paper runs (lgvi_jax/studies/car_pendulum.py, quick mode: the four
 #: VIs from the paper's state), which tests/test_experiments.py then loads instead of
 #: compiling.
 SHARED_ROLLOUT_STEPS = 10_000

@@ -7,10 +7,12 @@ trajectories), and each asserts values, not only that something ran."""
 from __future__ import annotations
 
 import csv
+import importlib.util
 import json
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -172,10 +174,10 @@ def test_heavy_top_sweep_set_and_sample_every(tmp_path, capsys):
 
 
 def test_bench_markdown_reports_the_measured_values(tmp_path):
-    """The writer of ``bench.md`` (experiments/bench_throughput.py) on a small synthetic
+    """The writer of ``bench.md`` (lgvi_jax/bench/throughput.py) on a small synthetic
     result: every row's numbers appear, the ratio is JAX over Numba, a missing baseline is
     "n/a", the gradient, fit and long-run tables list each row."""
-    from lgvi_jax.experiments.bench_throughput import _markdown
+    from lgvi_jax.bench.throughput import _markdown
 
     jax_row = {"single_steps_per_s": 12345.0, "batch_steps_per_s": 67890.0,
                "single_compile_s": 1.5, "batch_compile_s": 2.25, "batch_xla_memory_mb": 0.5,
@@ -231,8 +233,10 @@ def test_accelerator_bench_reports_the_sweeps_work(tmp_path, capsys):
     row per system, method, engine and batch, written as it goes, each with the same
     worst energy error and Newton iterations as the sweep's own batched run of those
     states, and a positive throughput."""
-    from lgvi_jax.experiments import bench_accelerator
-
+    path = Path(__file__).resolve().parent.parent / "experiments" / "bench_accelerator.py"
+    spec = importlib.util.spec_from_file_location("bench_accelerator", path)
+    bench_accelerator = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench_accelerator)
     from lgvi_jax.scenes import get_scene
     from lgvi_jax.sweep import initial_conditions, run_batch, sweep_method
 

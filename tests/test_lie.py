@@ -16,8 +16,9 @@ from lgvi_jax.diagnostics import drift_ratio
 from lgvi_jax.integrators import LGVI, RIGID_METHODS, HamelVI, resolve_method
 from lgvi_jax.integrators.lie import PREDICTOR_POINTS, predict, unresolved, where_any
 from lgvi_jax.models import CarPendulum, FreeRigidBody, HeavyTop, RigidState
-from lgvi_jax.newton import RESULTS, Newton
+from lgvi_jax.newton import Newton
 from lgvi_jax.simulate import IntegrationError, simulate
+from lgvi_jax.trajectory import RESULTS
 
 VI = ("lgvi", "hamel", "hamel-cayley", "hamel-exact", "hamel-cayley-exact")
 #: Methods whose momentum maps are conserved exactly (discrete Noether theorem).

@@ -7,18 +7,9 @@ import numpy as np
 import pytest
 
 import lgvi_jax  # noqa: F401  (float64)
-from lgvi_jax.newton import (
-    RESULTS,
-    ChordInverse,
-    Newton,
-    NewtonError,
-    ldl_solve,
-    newton_solve,
-    raise_if_failed,
-    small_solve,
-    spd_inverse,
-    spd_solve,
-)
+from lgvi_jax.linalg import ldl_solve, small_solve, spd_inverse, spd_solve
+from lgvi_jax.newton import ChordInverse, Newton, NewtonError, newton_solve, raise_if_failed
+from lgvi_jax.trajectory import RESULTS
 
 
 def cubic(y, a):

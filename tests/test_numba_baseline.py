@@ -11,7 +11,8 @@ import lgvi_jax as lj
 
 pytest.importorskip("numba")
 from conftest import SHARED_ROLLOUT_STEPS, SHARED_SAVE_EVERY
-from lgvi_jax.experiments import numba_lgvi as nb
+
+from lgvi_jax.bench import numba_lgvi as nb
 
 
 def _engine(model, method, s0, dt, n):
@@ -158,8 +159,7 @@ def test_numba_diagnostics_equal_the_sweeps_on_the_same_states():
     on the very states of a JAX trajectory, against the same quantities from the JAX
     model (what the sweep's metrics evaluate) reduced by the sweep's definitions: equal to
     rounding, with bounds from the standard error analysis of the two evaluations."""
-    from lgvi_jax.experiments import numba_hamel as nh
-
+    from lgvi_jax.bench import numba_hamel as nh
     from lgvi_jax.reference import moving_scene
 
     model = moving_scene()  # generic attitude, cart moving: every term of H is non-zero

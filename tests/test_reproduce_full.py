@@ -67,7 +67,7 @@ def test_work_precision_stage(full_run):
     """Errors finite and falling with the step at the declared order, for each of our
     methods on each system; diffrax's errors falling with its tolerance (when installed);
     the invariants of the long runs; the files and the summary."""
-    from lgvi_jax.experiments import work_precision as wp
+    from lgvi_jax.studies import work_precision as wp
 
     res = full_run.results["work_precision"]
     out = full_run.out / "work_precision"

@@ -26,8 +26,9 @@ from lgvi_jax.integrators import with_scalar_newton
 from lgvi_jax.integrators.lie import LGVI, HamelVI
 from lgvi_jax.models.rigid import AbstractRigidBodyModel
 from lgvi_jax.models.rigid_bodies import rotational_kinetic
-from lgvi_jax.newton import RESULTS, Newton, newton_solve
+from lgvi_jax.newton import Newton, newton_solve
 from lgvi_jax.scalarize import ScalarFunction, join, program_for, scalarize, split
+from lgvi_jax.trajectory import RESULTS
 
 ROUNDING = 1e-11  # module docstring
 

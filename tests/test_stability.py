@@ -5,10 +5,10 @@ study, its files and limits, is tested on `lgvi-jax reproduce --full --quick`
 
 import numpy as np
 import pytest
-from lgvi_jax.experiments import stability as st
 
 import lgvi_jax as lj
-from lgvi_jax.newton import RESULTS
+from lgvi_jax.studies import stability as st
+from lgvi_jax.trajectory import RESULTS
 
 
 @pytest.fixture(scope="module")

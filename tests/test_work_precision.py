@@ -7,7 +7,8 @@ import json
 
 import numpy as np
 import pytest
-from lgvi_jax.experiments import work_precision as wp
+
+from lgvi_jax.studies import work_precision as wp
 
 
 @pytest.fixture(scope="module")
@@ -64,8 +65,8 @@ def test_diffrax_error_is_measured(oscillator):
 def test_reproduce_full_runs_the_full_stages(tmp_path, monkeypatch):
     import lgvi_jax.reproduce as rp
 
-    mine = [("work_precision", "lgvi_jax.experiments.work_precision"),
-            ("stability", "lgvi_jax.experiments.stability")]
+    mine = [("work_precision", "lgvi_jax.studies.work_precision"),
+            ("stability", "lgvi_jax.studies.stability")]
     assert all(stage in rp.FULL_STAGES for stage in mine)
     calls = []
 
@@ -80,7 +81,7 @@ def test_reproduce_full_runs_the_full_stages(tmp_path, monkeypatch):
     monkeypatch.setattr(rp, "STAGES", [])
     monkeypatch.setattr(rp, "FULL_STAGES", mine)
     monkeypatch.setattr(wp, "run", fake_run)
-    from lgvi_jax.experiments import stability
+    from lgvi_jax.studies import stability
 
     monkeypatch.setattr(stability, "run", fake_run)
     rp.reproduce(tmp_path, quick=True, log=lambda *_: None)

@@ -28,7 +28,8 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ..newton import RESULTS, NewtonSolution
+from ..newton import NewtonSolution
+from ..trajectory import RESULTS
 
 
 class StepInfo(eqx.Module):

@@ -105,7 +105,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ..newton import RESULTS
+from ..trajectory import RESULTS
 from .base import AbstractIntegrator, StepInfo
 
 __all__ = [

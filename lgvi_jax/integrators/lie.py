@@ -68,8 +68,9 @@ import jax
 import jax.numpy as jnp
 
 from .. import so3
+from ..linalg import ldl_solve, spd_inverse
 from ..models.rigid import AbstractRigidBodyModel, RigidState
-from ..newton import ChordInverse, Newton, ldl_solve, newton_solve, spd_inverse
+from ..newton import ChordInverse, Newton, newton_solve
 from ..scalarize import scalarize
 from .base import AbstractIntegrator, StepInfo
 

@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 
 from .._checks import check_float64_finite
-from ..newton import small_solve
+from ..linalg import small_solve
 
 
 class PhaseState(eqx.Module):

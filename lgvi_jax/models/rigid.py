@@ -48,7 +48,7 @@ import numpy as np
 
 from .. import so3
 from .._checks import check_float64_finite, is_concrete
-from ..newton import spd_solve
+from ..linalg import spd_solve
 
 __all__ = ["AbstractRigidBodyModel", "RigidState", "check_inertia", "left_gradient"]
 

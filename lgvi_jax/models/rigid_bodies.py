@@ -17,7 +17,7 @@ import numpy as np
 
 from .. import so3
 from .._checks import as_float_array, check_positive, is_concrete
-from ..newton import spd_solve
+from ..linalg import spd_solve
 from .rigid import AbstractRigidBodyModel, RigidState, check_inertia
 
 __all__ = ["CarPendulum", "FreeRigidBody", "HeavyTop", "rotational_kinetic"]

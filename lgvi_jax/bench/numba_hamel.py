@@ -218,7 +218,7 @@ def energy(R, mu, q, p, prm, A, X):
     kinetic energy is quadratic in the velocities), with its closed-form inverse Legendre
     map (``velocities``): the 3x3 Schur complement ``J − m²/(m+M) (|ρ|²I − ρρᵀ − ccᵀ)``,
     ``c = ρ × Rᵀe3``, solved by the same pivot-free Gauss–Jordan elimination
-    (:func:`lgvi_jax.newton.spd_solve`), then ``v = (p − m P R(ω × ρ))/(m+M)``. The same
+    (:func:`lgvi_jax.linalg.spd_solve`), then ``v = (p − m P R(ω × ρ))/(m+M)``. The same
     operations in the same order as the JAX model, so the two differ by rounding only (XLA
     may contract a product and a sum into one fused multiply-add). ``A`` (3, 3) and ``X``
     (3,) are scratch space."""
@@ -243,7 +243,7 @@ def energy(R, mu, q, p, prm, A, X):
     X[0] = mu[0] - f * (rho1 * a2 - rho2 * a1)
     X[1] = mu[1] - f * (rho2 * a0 - rho0 * a2)
     X[2] = mu[2] - f * (rho0 * a1 - rho1 * a0)
-    # Gauss–Jordan without pivoting (lgvi_jax.newton._gauss_jordan): for each k, subtract
+    # Gauss–Jordan without pivoting (lgvi_jax.linalg._gauss_jordan): for each k, subtract
     # (A[:, k] − e_k) times row k over the pivot.
     for kk in range(3):
         inv = 1.0 / A[kk, kk]

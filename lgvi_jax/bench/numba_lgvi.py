@@ -61,8 +61,9 @@ import time
 
 import numba
 import numpy as np
-from lgvi_jax.experiments import numba_hamel as _hamel
 from numba import njit
+
+from lgvi_jax.bench import numba_hamel as _hamel
 
 METHODS = ("lgvi", *_hamel.METHODS)
 METRICS = _hamel.METRICS

@@ -38,13 +38,12 @@ Hairer, Lubich, Wanner, *Geometric Numerical Integration* (2006), §I.5 and §XI
 (Störmer–Verlet and symplectic methods on oscillators); Marsden & West, *Acta Numerica*
 (2001) (Galerkin VIs).
 
-Run:  ``python experiments/stability.py --out DIR [--quick]`` or
+Run:  ``python -m lgvi_jax.studies.stability --out DIR [--quick]`` or
 ``lgvi-jax reproduce --full``.
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 import time
@@ -59,10 +58,11 @@ import numpy as np
 from lgvi_jax._io import atomic_write_text
 from lgvi_jax.diagnostics import environment
 from lgvi_jax.models import CarPendulum, HarmonicOscillator, PhaseState
-from lgvi_jax.newton import RESULTS
 from lgvi_jax.plotting import figure, method_style, positive, save
 from lgvi_jax.scenes import resolve_methods
 from lgvi_jax.simulate import guarded_step_with
+from lgvi_jax.studies import script_main
+from lgvi_jax.trajectory import RESULTS
 
 #: Methods probed, by scene name; names that do not resolve (not in this checkout) are
 #: skipped and listed in the summary.
@@ -506,14 +506,5 @@ def _jsonable(obj):
     return obj
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", required=True, help="output folder")
-    parser.add_argument("--quick", action="store_true", help="fewer methods, coarser scan")
-    args = parser.parse_args(argv)
-    run(args.out, quick=args.quick, log=lambda m: print(m, file=sys.stderr, flush=True))
-    return 0
-
-
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(script_main(run, __doc__, quick_help="fewer methods, coarser scan"))

@@ -8,12 +8,11 @@ paper, and ``results.json`` with every number.
 The paper gives neither step nor horizon: figures 1–3 use ``h = 0.1`` on ``[0, 100]`` with
 ``H = p²/2 + q²/2``, ``q0 = 1``, ``p0 = 0``.
 
-Run:  ``python experiments/oscillator.py --out DIR [--quick]`` or ``lgvi-jax reproduce``.
+Run:  ``python -m lgvi_jax.studies.oscillator --out DIR [--quick]`` or ``lgvi-jax reproduce``.
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 from collections.abc import Callable
@@ -34,6 +33,7 @@ from lgvi_jax.integrators import EUCLIDEAN_METHODS
 from lgvi_jax.models import HarmonicOscillator
 from lgvi_jax.plotting import figure, positive, save, style_for
 from lgvi_jax.simulate import final_state, simulate, simulate_timed
+from lgvi_jax.studies import script_main
 
 PAPER_METHODS = ("rk4", "gl4", "galerkin4")
 ALL_METHODS = ("rk4", "gl4", "galerkin4", "verlet", "gl6", "galerkin6")
@@ -328,14 +328,5 @@ def run(out_dir: Path | str, *, quick: bool = False, log: Callable = print) -> d
     return results
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", required=True, help="output folder")
-    parser.add_argument("--quick", action="store_true", help="shorter long run")
-    args = parser.parse_args(argv)
-    run(args.out, quick=args.quick, log=lambda m: print(m, file=sys.stderr, flush=True))
-    return 0
-
-
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(script_main(run, __doc__, quick_help="shorter long run"))

@@ -22,15 +22,13 @@ a ``lgvi`` rollout differentiated with implicit Newton derivatives). Reported:
   until it meets the noise;
 * ``summary.md`` and ``results.json`` (written last).
 
-Run:  ``python experiments/identify_inertia.py --out DIR [--quick]``.
+Run:  ``python -m lgvi_jax.studies.identify_inertia --out DIR [--quick]``.
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
-import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -43,6 +41,7 @@ from lgvi_jax.inertia import centroidal_inertia, is_physical, pivot_inertia
 from lgvi_jax.models import CarPendulum
 from lgvi_jax.models.rigid_bodies import PAPER_J, PAPER_RHO_C
 from lgvi_jax.plotting import figure, save
+from lgvi_jax.studies import script_main
 
 J_C_TRUE = np.diag([0.03, 0.05, 0.04])
 NOISE = 1e-3
@@ -228,16 +227,5 @@ def write_summary(results: dict, out: Path) -> None:
     atomic_write_text(out / "summary.md", "\n".join(lines) + "\n")
 
 
-def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", required=True, help="output folder")
-    parser.add_argument("--quick", action="store_true", help="fewer fits (smoke test)")
-    args = parser.parse_args(argv)
-    start = time.perf_counter()
-    run(args.out, quick=args.quick, log=lambda m: print(m, file=sys.stderr, flush=True))
-    print(f"done in {time.perf_counter() - start:.1f} s", file=sys.stderr)
-    return 0
-
-
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(script_main(run, __doc__, quick_help="fewer fits (smoke test)"))

@@ -20,12 +20,11 @@ RK4 with a step 16 times smaller than the smallest swept step (its agreement wit
 independent, hand-derived reference integrated by DOP853 at 1e-13 is checked in
 ``tests/test_reference.py``).
 
-Run:  ``python experiments/car_pendulum.py --out DIR [--quick]`` or ``lgvi-jax reproduce``.
+Run:  ``python -m lgvi_jax.studies.car_pendulum --out DIR [--quick]`` or ``lgvi-jax reproduce``.
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 import time
@@ -44,6 +43,7 @@ from lgvi_jax.integrators import RIGID_METHODS, resolve_method
 from lgvi_jax.models import CarPendulum
 from lgvi_jax.plotting import figure, positive, save, style_for
 from lgvi_jax.simulate import simulate_timed
+from lgvi_jax.studies import script_main
 
 PAPER_METHODS = ("lgvi", "hamel")
 METHODS = ("lgvi", "hamel", "hamel-cayley", "hamel-exact", "rk4")
@@ -542,14 +542,5 @@ def run(out_dir: Path | str, *, quick: bool = False, log: Callable = print) -> d
     return results
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", required=True, help="output folder")
-    parser.add_argument("--quick", action="store_true", help="shorter long run")
-    args = parser.parse_args(argv)
-    run(args.out, quick=args.quick, log=lambda m: print(m, file=sys.stderr, flush=True))
-    return 0
-
-
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(script_main(run, __doc__, quick_help="shorter long run"))

@@ -47,13 +47,12 @@ trajectory; ours through :func:`lgvi_jax.sweep.batch_arguments`, diffrax through
 References: Hairer, Nørsett, Wanner, *Solving ODEs I* (1993), §II.10 (work-precision
 diagrams); Kidger, *On Neural Differential Equations* (2021) (diffrax).
 
-Run:  ``python experiments/work_precision.py --out DIR [--quick]`` or
+Run:  ``python -m lgvi_jax.studies.work_precision --out DIR [--quick]`` or
 ``lgvi-jax reproduce --full``.
 """
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import functools
 import json
@@ -76,6 +75,7 @@ from lgvi_jax.plotting import figure, method_style, positive, save
 from lgvi_jax.reference import HandReference, moving_scene
 from lgvi_jax.scenes import get_scene, resolve_methods
 from lgvi_jax.simulate import guarded_step_with
+from lgvi_jax.studies import script_main
 
 try:  # optional peer (the ``bench`` extra)
     import diffrax
@@ -1051,14 +1051,5 @@ def run(out_dir: Path | str, *, quick: bool = False, log: Callable = print) -> d
     return results
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", required=True, help="output folder")
-    parser.add_argument("--quick", action="store_true", help="a few methods, short horizons")
-    args = parser.parse_args(argv)
-    run(args.out, quick=args.quick, log=lambda m: print(m, file=sys.stderr, flush=True))
-    return 0
-
-
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(script_main(run, __doc__, quick_help="a few methods, short horizons"))

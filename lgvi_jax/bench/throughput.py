@@ -15,7 +15,7 @@ Four parts (``lgvi-jax bench --out DIR``; writes ``bench.json`` and ``bench.md``
    (:func:`lgvi_jax.sweep.sweep_method`): ``--engines scalar`` (the default) is what the
    sweep runs, the autodiff engine on scalars; ``general`` the same equations on arrays,
    for comparison. Beside each car-pendulum row, the Numba baseline of the same method
-   (``experiments/numba_lgvi.py``, ``numba_hamel.py``: the same discrete equations,
+   (``lgvi_jax/bench/numba_lgvi.py``, ``numba_hamel.py``: the same discrete equations,
    hand-derived and reduced to three unknowns, scalar loops, the engine's chord-then-Newton
    iteration; compositions as the same sub-steps) **with the same per-step diagnostics**
    (``sweep_metrics``: the car-pendulum's energy, cart momentum, vertical angular momentum
@@ -46,12 +46,11 @@ run counts. Compile times are ahead of time (``lower().compile()``) and cold: ``
 bench`` leaves the command line's persistent compilation cache off. The benchmark reports
 numbers and asserts nothing about them.
 
-Run: ``lgvi-jax bench --out results/bench`` (or ``python experiments/bench_throughput.py``).
+Run: ``lgvi-jax bench --out results/bench`` (or ``python lgvi_jax/bench/throughput.py``).
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import os
@@ -71,6 +70,7 @@ import numpy as np
 
 import lgvi_jax as lj
 from lgvi_jax._io import atomic_write_json, atomic_write_text
+from lgvi_jax.studies import script_main
 from lgvi_jax.sweep import batch_arguments, engine_name, initial_conditions, sweep_method
 
 SYSTEMS = ("car-pendulum", "heavy-top")
@@ -113,7 +113,7 @@ WORK = ("Both sides compute, after every step, what `lgvi-jax sweep` records per
         "method `lgvi-jax sweep` builds (engine *scalar*; *general*: the same equations "
         "on arrays). Numba: the same discrete "
         "equations reduced by hand to three unknowns, with the same diagnostics written in "
-        "Numba (`experiments/numba_lgvi.py` `sweep_metrics`; car-pendulum only: n/a for "
+        "Numba (`lgvi_jax/bench/numba_lgvi.py` `sweep_metrics`; car-pendulum only: n/a for "
         "the heavy top); one trajectory on one core, the batch on all cores.")
 
 
@@ -409,7 +409,7 @@ def _load_numba(methods: Sequence[str], log):
     """The Numba baselines, compiled for ``methods`` (``None`` without Numba), and what
     was used."""
     try:
-        from lgvi_jax.experiments import numba_lgvi as nb
+        from lgvi_jax.bench import numba_lgvi as nb
     except ImportError as err:
         log(f"Numba baseline unavailable ({err}); install the bench extra: "
             "pip install 'lgvi_jax[bench]'")
@@ -618,14 +618,5 @@ def _markdown(r: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", default="results/bench")
-    parser.add_argument("--quick", action="store_true")
-    args = parser.parse_args(argv)
-    run(args.out, quick=args.quick)
-    return 0
-
-
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(script_main(run, __doc__))

@@ -1,0 +1,36 @@
+"""The studies that ``lgvi-jax reproduce`` runs: one module per part of the paper
+(``oscillator``, ``car_pendulum``) and per study beyond it (``work_precision``,
+``stability``, ``identify_inertia``).
+
+Each module has ``run(out_dir, quick=False, log=print) -> dict``: it writes its figures,
+``summary.md`` and, last, ``results.json`` into ``out_dir``. One runs alone as
+``python -m lgvi_jax.studies.NAME --out DIR [--quick]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from collections.abc import Callable
+
+
+def _stderr(message: str) -> None:
+    print(message, file=sys.stderr, flush=True)
+
+
+def script_main(run: Callable, description: str | None, argv: list[str] | None = None, *,
+                quick_help: str | None = "a shorter run (smoke test)") -> int:
+    """The command line of a study or benchmark script: ``--out DIR`` and, when
+    ``quick_help`` is given, ``--quick``; runs ``run(out, [quick=...,] log=...)`` and
+    reports the wall time on stderr."""
+    parser = argparse.ArgumentParser(description=(description or "").strip().splitlines()[0])
+    parser.add_argument("--out", required=True, help="output folder")
+    if quick_help:
+        parser.add_argument("--quick", action="store_true", help=quick_help)
+    args = parser.parse_args(argv)
+    options = {"quick": args.quick} if quick_help else {}
+    start = time.perf_counter()
+    run(args.out, log=_stderr, **options)
+    print(f"done in {time.perf_counter() - start:.1f} s", file=sys.stderr)
+    return 0
