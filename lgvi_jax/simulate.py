@@ -45,54 +45,10 @@ import numpy as np
 from ._checks import is_concrete
 from .integrators.base import AbstractIntegrator
 from .newton import SOLUTION_NAME
-from .trajectory import RESULTS, IntegrationError, Trajectory
+from .rollout import advance, start
+from .trajectory import IntegrationError, Trajectory
 
-__all__ = ["IntegrationError", "Trajectory", "final_state", "guarded_step", "guarded_step_with",
-           "simulate", "simulate_timed"]
-
-
-def _all_finite(tree) -> jax.Array:
-    leaves = jax.tree.leaves(tree)
-    return jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in leaves]))
-
-
-def guarded_step(model, method, state, dt, k, code, failed_step, failed_res):
-    """One step of ``method`` with the rollouts' failure bookkeeping, for custom loops.
-
-    ``k`` is the step's index; ``code``, ``failed_step``, ``failed_res`` are the running
-    first failure's result code, step index and Newton residual (start with
-    ``RESULTS.successful``, -1 and 0). The step's code is the Newton solve's, or
-    :attr:`RESULTS.nonfinite` if the new state is not finite; the first failure is kept,
-    and from the failed step on the state is NaN. Returns ``(new_state, code, failed_step,
-    failed_res, info)``.
-    """
-    new_state, info = method.step(model, state, dt)
-    return _guard(new_state, info, k, code, failed_step, failed_res)
-
-
-def guarded_step_with(model, method, state, solver_state, dt, k, code, failed_step,
-                      failed_res):
-    """:func:`guarded_step` threading the method's solver state
-    (:meth:`~lgvi_jax.integrators.AbstractIntegrator.init_solver_state`, then this
-    function's last output). Returns ``(new_state, code, failed_step, failed_res, info,
-    solver_state)``."""
-    new_state, info, solver_state = method.step_with(model, state, dt, solver_state)
-    return (*_guard(new_state, info, k, code, failed_step, failed_res), solver_state)
-
-
-def _guard(new_state, info, k, code, failed_step, failed_res):
-    step_code = jnp.where(
-        info.result != RESULTS.successful,
-        info.result,
-        jnp.where(_all_finite(new_state), RESULTS.successful, RESULTS.nonfinite),
-    ).astype(jnp.int32)
-    first_failure = (code == RESULTS.successful) & (step_code != RESULTS.successful)
-    code = jnp.where(first_failure, step_code, code)
-    failed_step = jnp.where(first_failure, k, failed_step)
-    failed_res = jnp.where(first_failure, info.residual, failed_res)
-    failed = code != RESULTS.successful
-    new_state = jax.tree.map(lambda x: jnp.where(failed, jnp.nan, x), new_state)
-    return new_state, code, failed_step, failed_res, info
+__all__ = ["IntegrationError", "Trajectory", "final_state", "simulate", "simulate_timed"]
 
 
 def _record(model, state):
@@ -103,37 +59,15 @@ def _record(model, state):
 def _rollout(model, method, state0, dt, t0, n_steps: int, save_every: int,
              checkpoint_every: int | None = None, save_solutions: bool = True) -> Trajectory:
     n_blocks = n_steps // save_every
-    int0 = jnp.asarray(0, jnp.int32)
-
-    def one_step(carry, _):
-        state, k, code, failed_step, failed_res, ss, it_sum, it_max = carry
-        running = code == RESULTS.successful
-        state, code, failed_step, failed_res, info, ss = guarded_step_with(
-            model, method, state, ss, dt, k, code, failed_step, failed_res
-        )
-        iters = jnp.where(running, info.newton_steps, 0).astype(jnp.int32)
-        carry = (state, k + 1, code, failed_step, failed_res, ss, it_sum + iters,
-                 jnp.maximum(it_max, iters))
-        return carry, None
 
     def one_block(carry, _):
-        inner, _ = jax.lax.scan(one_step, (*carry, int0, int0), None, length=save_every)
-        *carry, it_sum, it_max = inner
-        saved = (*_record(model, carry[0]), it_sum, it_max)
-        return tuple(carry), saved
+        carry, _ = advance(model, method, dt, carry.reset_counts(), save_every, loop="scan")
+        saved = (*_record(model, carry.state), carry.newton_steps, carry.newton_steps_max)
+        return carry, saved
 
-    init = (
-        state0,
-        int0,
-        jnp.asarray(RESULTS.successful, jnp.int32),
-        jnp.asarray(-1, jnp.int32),
-        jnp.zeros((), dt.dtype),
-        method.init_solver_state(model, state0, dt),
-    )
+    init = start(model, method, state0, dt)
     if checkpoint_every is None:
-        (_, _, code, failed_step, failed_res, _), saved = jax.lax.scan(
-            one_block, init, None, length=n_blocks
-        )
+        end, saved = jax.lax.scan(one_block, init, None, length=n_blocks)
     else:
         blocks_per_segment = checkpoint_every // save_every
 
@@ -147,10 +81,10 @@ def _rollout(model, method, state0, dt, t0, n_steps: int, save_every: int,
         def one_segment(carry, _):
             return jax.lax.scan(one_block, carry, None, length=blocks_per_segment)
 
-        (_, _, code, failed_step, failed_res, _), saved = jax.lax.scan(
-            one_segment, init, None, length=n_steps // checkpoint_every
-        )
+        end, saved = jax.lax.scan(one_segment, init, None,
+                                  length=n_steps // checkpoint_every)
         saved = jax.tree.map(lambda x: x.reshape((n_blocks, *x.shape[2:])), saved)
+    int0 = jnp.zeros((), jnp.int32)
     first = (*_record(model, state0), int0, int0)
 
     def prepend(x0, xs):
@@ -164,9 +98,9 @@ def _rollout(model, method, state0, dt, t0, n_steps: int, save_every: int,
         invariants=inv,
         newton_steps=it_sum,
         newton_steps_max=it_max,
-        result=code,
-        failed_step=failed_step,
-        failed_residual=failed_res,
+        result=end.result,
+        failed_step=end.failed_step,
+        failed_residual=end.failed_residual,
         dt=dt,
         n_steps=n_steps,
         save_every=save_every,
@@ -297,17 +231,8 @@ def simulate_timed(
 
 @eqx.filter_jit
 def _final_state(model, method, state0, dt, n_steps):
-    def body(k, carry):
-        state, code, failed_step, failed_res, ss = carry
-        state, code, failed_step, failed_res, _, ss = guarded_step_with(
-            model, method, state, ss, dt, k, code, failed_step, failed_res
-        )
-        return state, code, failed_step, failed_res, ss
-
-    init = (state0, jnp.asarray(RESULTS.successful, jnp.int32), jnp.asarray(-1, jnp.int32),
-            jnp.zeros((), dt.dtype), method.init_solver_state(model, state0, dt))
-    state, code, _, _, _ = jax.lax.fori_loop(jnp.asarray(0, jnp.int32), n_steps, body, init)
-    return state, code
+    end, _ = advance(model, method, dt, start(model, method, state0, dt), n_steps)
+    return end.state, end.result
 
 
 def final_state(

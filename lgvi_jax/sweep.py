@@ -71,7 +71,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import so3
+from . import rollout, so3
 from ._io import (
     atomic_open,
     atomic_write_bytes,
@@ -81,7 +81,6 @@ from ._io import (
 )
 from .progress import Progress
 from .scalarize import on_scalars
-from .simulate import guarded_step_with
 from .trajectory import RESULTS
 
 __all__ = [
@@ -322,6 +321,14 @@ def _per_member(tree):
     return ident(tree)
 
 
+def _start(model, method, state0, dt) -> rollout.Carry:
+    """The rollout's initial carry, every leaf per member except the step index, which
+    stays shared: the metrics' ``cond`` on it then stays a branch under ``vmap`` (metrics
+    every K steps cost 1/K), where a per-member index would turn it into a selection."""
+    carry = rollout.start(model, method, state0, dt)
+    return eqx.tree_at(lambda c: c.k, _per_member(carry), carry.k)
+
+
 def _sweep_one(model, method, state0, dt, n_steps, sample_every):
     """One trajectory of ``n_steps`` (a run-time value) with running metrics."""
     # On scalars (scalarize.on_scalars): the invariants of a model derived by autodiff (the
@@ -353,35 +360,22 @@ def _sweep_one(model, method, state0, dt, n_steps, sample_every):
     # The maxima start at NaN (fmax ignores it): a trajectory that fails before its first
     # sample records NaN, not a misleading 0.
     nan_metrics = jax.tree.map(lambda x: jnp.full_like(x, jnp.nan), zero_metrics)
-    int0 = jnp.asarray(0, jnp.int32)
 
-    def body(k, carry):
-        state, code, failed_step, failed_res, ss, it_sum, it_max, maxima, last = carry
-        running = code == RESULTS.successful
-        state, code, failed_step, failed_res, info, ss = guarded_step_with(
-            model, method, state, ss, dt, k, code, failed_step, failed_res
-        )
-        iters = jnp.where(running, info.newton_steps, 0).astype(jnp.int32)
-        ok = code == RESULTS.successful
-        sample = ((k + 1) % sample_every == 0) | (k + 1 == n_steps)
+    def observe(acc, c):
+        sample = (c.k % sample_every == 0) | (c.k == n_steps)
 
         def update(args):
             maxima, last = args
-            m = measure(state)
-            maxima = jax.tree.map(lambda a, b: jnp.where(ok, jnp.fmax(a, b), a), maxima, m)
-            last = jax.tree.map(lambda b: jnp.where(ok, b, jnp.nan), m)
+            m = measure(c.state)
+            maxima = jax.tree.map(lambda a, b: jnp.where(c.ok, jnp.fmax(a, b), a), maxima, m)
+            last = jax.tree.map(lambda b: jnp.where(c.ok, b, jnp.nan), m)
             return maxima, last
 
-        maxima, last = jax.lax.cond(sample, update, lambda a: a, (maxima, last))
-        return (state, code, failed_step, failed_res, ss, it_sum + iters,
-                jnp.maximum(it_max, iters), maxima, last)
+        return jax.lax.cond(sample, update, lambda a: a, acc)
 
-    init = (state0, jnp.asarray(RESULTS.successful, jnp.int32), jnp.asarray(-1, jnp.int32),
-            jnp.zeros((), ftype), method.init_solver_state(model, state0, dt), int0, int0,
-            nan_metrics, zero_metrics)
-    carry = jax.lax.fori_loop(int0, n_steps, body, _per_member(init))
-    _, code, failed_step, _, _, it_sum, it_max, maxima, last = carry
-    steps_done = jnp.where(failed_step >= 0, failed_step + 1, n_steps)
+    carry, acc = _start(model, method, state0, dt), _per_member((nan_metrics, zero_metrics))
+    end, (maxima, last) = rollout.advance(model, method, dt, carry, n_steps, observe, acc)
+    steps_done = jnp.where(end.failed_step >= 0, end.failed_step + 1, n_steps)
     out = {
         "energy_error_max": maxima["energy_error"],
         "energy_error_final": last["energy_error"],
@@ -390,28 +384,18 @@ def _sweep_one(model, method, state0, dt, n_steps, sample_every):
         out[f"{k}_drift_max"] = maxima[f"{k}_drift"]
     if on_group:
         out["orthogonality_error_max"] = maxima["orthogonality_error"]
-    out["newton_mean"] = it_sum / jnp.maximum(steps_done, 1).astype(ftype)
-    out["newton_max"] = it_max
-    out["result"] = code
-    out["failed_step"] = failed_step
+    out["newton_mean"] = end.newton_steps / jnp.maximum(steps_done, 1).astype(ftype)
+    out["newton_max"] = end.newton_steps_max
+    out["result"] = end.result
+    out["failed_step"] = end.failed_step
     return out
 
 
 def _final_one(model, method, state0, dt, n_steps, sample_every):
     """One trajectory, no metrics: the final state and the result code (benchmarks)."""
     del sample_every
-
-    def body(k, carry):
-        state, code, failed_step, failed_res, ss = carry
-        state, code, failed_step, failed_res, _, ss = guarded_step_with(
-            model, method, state, ss, dt, k, code, failed_step, failed_res)
-        return state, code, failed_step, failed_res, ss
-
-    init = (state0, jnp.asarray(RESULTS.successful, jnp.int32), jnp.asarray(-1, jnp.int32),
-            jnp.zeros((), dt.dtype), method.init_solver_state(model, state0, dt))
-    state, code, failed_step, _, _ = jax.lax.fori_loop(jnp.asarray(0, jnp.int32), n_steps,
-                                                       body, _per_member(init))
-    return {"state": state, "result": code, "failed_step": failed_step}
+    end, _ = rollout.advance(model, method, dt, _start(model, method, state0, dt), n_steps)
+    return {"state": end.state, "result": end.result, "failed_step": end.failed_step}
 
 
 _ONE = {"metrics": _sweep_one, "final": _final_one}

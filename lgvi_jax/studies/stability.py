@@ -51,16 +51,15 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 
+from lgvi_jax import rollout
 from lgvi_jax._io import atomic_write_text
 from lgvi_jax.diagnostics import environment
 from lgvi_jax.models import CarPendulum, HarmonicOscillator, PhaseState
 from lgvi_jax.plotting import figure, method_style, positive, save
 from lgvi_jax.scenes import resolve_methods
-from lgvi_jax.simulate import guarded_step_with
 from lgvi_jax.studies import script_main
 from lgvi_jax.trajectory import RESULTS
 
@@ -116,23 +115,14 @@ def _probe(model, method, state0, h, n_steps, threshold):
     e0 = model.energy(state0)
     scale = jnp.where(e0 != 0, jnp.abs(e0), 1.0)
 
-    def cond(c):
-        k, _, code, _, _, _, emax = c
-        return (k < n_steps) & (code == RESULTS.successful) & (emax <= threshold)
+    def observe(emax, c):
+        rel = jnp.abs(model.energy(c.state) - e0) / scale
+        return jnp.where(jnp.isfinite(rel), jnp.maximum(emax, rel), emax)
 
-    def body(c):
-        k, state, code, failed_step, failed_res, ss, emax = c
-        state, code, failed_step, failed_res, _, ss = guarded_step_with(
-            model, method, state, ss, h, k, code, failed_step, failed_res)
-        rel = jnp.abs(model.energy(state) - e0) / scale
-        emax = jnp.where(jnp.isfinite(rel), jnp.maximum(emax, rel), emax)
-        return k + 1, state, code, failed_step, failed_res, ss, emax
-
-    init = (jnp.asarray(0, jnp.int32), state0, jnp.asarray(RESULTS.successful, jnp.int32),
-            jnp.asarray(-1, jnp.int32), jnp.zeros((), h.dtype),
-            method.init_solver_state(model, state0, h), jnp.zeros((), h.dtype))
-    k, _, code, failed_step, _, _, emax = jax.lax.while_loop(cond, body, init)
-    return code, failed_step, emax, k
+    end, emax = rollout.advance(model, method, h, rollout.start(model, method, state0, h),
+                                n_steps, observe, jnp.zeros((), h.dtype), loop="while",
+                                until=lambda c, emax: ~c.ok | (emax > threshold))
+    return end.result, end.failed_step, emax, end.k
 
 
 def probe(model, method, state0, h: float, n_steps: int,

@@ -68,13 +68,12 @@ import jax.numpy as jnp
 import numpy as np
 
 import lgvi_jax
-from lgvi_jax import diagnostics, so3
+from lgvi_jax import diagnostics, rollout, so3
 from lgvi_jax._io import atomic_write_text
 from lgvi_jax.models import CarPendulum, HarmonicOscillator, PhaseState
 from lgvi_jax.plotting import figure, method_style, positive, save
 from lgvi_jax.reference import HandReference, moving_scene
 from lgvi_jax.scenes import get_scene, resolve_methods
-from lgvi_jax.simulate import guarded_step_with
 from lgvi_jax.studies import script_main
 
 try:  # optional peer (the ``bench`` extra)
@@ -273,31 +272,20 @@ def _rollout(model, method, state0, h, steps_per_save, n_saves):
     """``n_saves * steps_per_save`` steps of ``h`` (both run-time: one compilation per
     method and model structure), the state saved after every ``steps_per_save`` steps into a
     buffer of ``MAX_SAVES + 1`` rows (row 0: the initial state; unused rows NaN). Failure
-    bookkeeping is :func:`lgvi_jax.simulate.guarded_step_with`'s: first failure's code and step,
+    bookkeeping is :mod:`lgvi_jax.rollout`'s: first failure's code and step,
     NaN states from there on."""
     buf = jax.tree.map(
         lambda x: jnp.full((MAX_SAVES + 1, *jnp.shape(x)), jnp.nan, x.dtype).at[0].set(x),
         state0)
-    init = (state0, jnp.asarray(0, jnp.int32), jnp.asarray(-1, jnp.int32),
-            jnp.zeros((), h.dtype), method.init_solver_state(model, state0, h), buf)
 
-    def block(i, carry):
-        state, code, failed_step, failed_res, ss, buf = carry
+    def block(i, carry_buf):
+        carry, buf = carry_buf
+        carry, _ = rollout.advance(model, method, h, carry, steps_per_save)
+        return carry, jax.tree.map(lambda b, x: b.at[i + 1].set(x), buf, carry.state)
 
-        def one(j, c):
-            s, code, failed_step, failed_res, ss = c
-            s, code, failed_step, failed_res, _, ss = guarded_step_with(
-                model, method, s, ss, h, i * steps_per_save + j, code, failed_step,
-                failed_res)
-            return s, code, failed_step, failed_res, ss
-
-        state, code, failed_step, failed_res, ss = jax.lax.fori_loop(
-            0, steps_per_save, one, (state, code, failed_step, failed_res, ss))
-        buf = jax.tree.map(lambda b, x: b.at[i + 1].set(x), buf, state)
-        return state, code, failed_step, failed_res, ss, buf
-
-    _, code, failed_step, _, _, buf = jax.lax.fori_loop(0, n_saves, block, init)
-    return buf, code, failed_step
+    end, buf = jax.lax.fori_loop(0, n_saves, block,
+                                 (rollout.start(model, method, state0, h), buf))
+    return buf, end.result, end.failed_step
 
 
 _COMPILED: dict[Any, Any] = {}

@@ -1,0 +1,90 @@
+"""The one rollout loop (lgvi_jax.rollout): its three loop forms agree, a run split in two
+equals the whole run, observers fold what simulate saves, ``until`` stops at the first step
+that meets it, and a failure is kept with its step while later states are NaN."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import lgvi_jax as lj
+from lgvi_jax import rollout
+from lgvi_jax.trajectory import RESULTS
+
+DT = 0.1
+N = 40
+
+
+@pytest.fixture
+def setup():
+    model = lj.HarmonicOscillator(m=1.3, k=0.7, q0=0.4, p0=-0.9)
+    return model, lj.GaussLegendre(), model.default_state()
+
+
+def _leaves(carry):
+    return [np.asarray(x) for x in jax.tree.leaves(carry)]
+
+
+def _run(model, method, s0, n, loop, carry=None):
+    carry = rollout.start(model, method, s0, DT) if carry is None else carry
+    return jax.jit(lambda c: rollout.advance(model, method, DT, c, n, loop=loop)[0])(carry)
+
+
+def test_scan_fori_while_agree_and_a_split_run_equals_the_whole(setup):
+    model, method, s0 = setup
+    runs = {loop: _run(model, method, s0, N, loop) for loop in ("scan", "fori", "while")}
+    half = _run(model, method, s0, 15, "fori")
+    runs["split"] = _run(model, method, s0, N - 15, "scan", carry=half)
+    ref = _leaves(runs["scan"])
+    # The same operations in the same order: equal to the bit, whatever the loop.
+    for name, carry in runs.items():
+        for a, b in zip(_leaves(carry), ref, strict=True):
+            np.testing.assert_array_equal(a, b, err_msg=name)
+    end = runs["scan"]
+    assert int(end.k) == N and int(end.result) == RESULTS.successful
+    assert int(end.failed_step) == -1
+    # The state is simulate's last state, and the Newton counts are simulate's.
+    traj = lj.simulate(model, method, s0, DT, N)
+    np.testing.assert_array_equal(np.asarray(end.state.q), np.asarray(traj.state.q[-1]))
+    assert int(end.newton_steps) == int(np.sum(traj.newton_steps))
+    assert int(end.newton_steps_max) == int(np.max(traj.newton_steps_max))
+
+
+def test_an_observer_folds_what_simulate_saves_and_until_stops_at_the_first_hit(setup):
+    model, method, s0 = setup
+    e0 = model.energy(s0)
+
+    def observe(acc, c):
+        return jnp.maximum(acc, jnp.abs(model.energy(c.state) - e0))
+
+    carry = rollout.start(model, method, s0, DT)
+    _, emax = rollout.advance(model, method, DT, carry, N, observe, jnp.zeros(()))
+    errors = np.abs(np.asarray(lj.simulate(model, method, s0, DT, N).energy) - float(e0))
+    assert float(emax) == float(np.max(errors))
+    # Stop once the running maximum passes its median over the run: at the first step k
+    # whose error passes it, after k steps.
+    threshold = float(np.median(errors[1:]))
+    first = int(np.argmax(errors > threshold))
+    end, emax = rollout.advance(model, method, DT, carry, N, observe, jnp.zeros(()),
+                                loop="while", until=lambda c, a: a > threshold)
+    assert int(end.k) == first and float(emax) == float(np.max(errors[: first + 1]))
+
+
+def test_a_failure_keeps_its_step_and_the_later_states_are_nan(setup):
+    model, _, s0 = setup
+    # Newton with one iteration can never confirm convergence: step 0 fails.
+    method = lj.GaussLegendre(newton=lj.Newton(max_steps=1))
+    end = _run(model, method, s0, 10, "fori")
+    assert int(end.result) == RESULTS.max_steps_reached and int(end.failed_step) == 0
+    assert float(end.failed_residual) > 0
+    assert np.all(np.isnan(np.asarray(end.state.q))) and int(end.k) == 10
+    # Iterations count only the steps taken before the failure, the failed step's included.
+    assert int(end.newton_steps) == 1 and int(end.newton_steps_max) == 1
+    # A later failure of another kind does not overwrite the first.
+    again = rollout.advance(model, lj.RK4(), DT, end, 3)[0]
+    assert int(again.result) == RESULTS.max_steps_reached and int(again.failed_step) == 0
+
+
+def test_bad_loop_is_named():
+    with pytest.raises(ValueError, match="loop must be"):
+        rollout.advance(None, None, DT, None, 1, loop="unroll")
