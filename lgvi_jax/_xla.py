@@ -29,7 +29,7 @@ computation on an unknown ``XLA_FLAGS`` entry), so the flag is added only for th
 versions that know it (:data:`EMITTER_FLAG_BEFORE`).
 
 **Wide vectors, loops not unrolled.** A batch on scalars is a long sequence of small
-loops, one per fusion, over the trajectories of a block (``sweep.SCALAR_BLOCK`` on a CPU):
+loops, one per fusion, over the trajectories of a block (``sweep.batch.SCALAR_BLOCK`` on a CPU):
 the compiled rollout is one function of some 400 such loops, and LLVM's optimisation of
 that function is most of the compile time. ``--xla_cpu_prefer_vector_width=512`` lets LLVM
 use 512-bit vectors where the CPU has them (XLA's default is 256; no effect on a CPU

@@ -209,7 +209,7 @@ def test_a_prepared_rollout_is_loaded_once_and_gives_the_same_results(traces, mo
     method = sweep.sweep_method("free-rigid-body", "hamel")
     devices = tuple(jax.devices())
     batch = 2 * len(devices)
-    thread = threading.Thread(target=sweep._prepare_batch, args=(
+    thread = threading.Thread(target=sweep.batch._prepare_batch, args=(
         model, method, state0, batch, 0.01, 50, 1, devices))
     thread.start()
     states = sweep.initial_conditions(model, state0, batch, 0.1, 3)

@@ -97,7 +97,7 @@ def test_initial_conditions_reproducible_and_sized(car):
 
 
 def test_large_batches_run_in_blocks_with_the_same_results(car, monkeypatch):
-    """A device's share larger than ``sweep.BLOCK`` runs as equal vectorised blocks in
+    """A device's share larger than ``sweep.batch.BLOCK`` runs as equal vectorised blocks in
     sequence (the last one padded): the same per-trajectory results as one vmap, in the
     original order, padding dropped."""
     from lgvi_jax import sweep
@@ -107,7 +107,7 @@ def test_large_batches_run_in_blocks_with_the_same_results(car, monkeypatch):
     # test below (the batch's shape, not dt or the steps, makes the program).
     states = initial_conditions(model, s0, 4, 0.05, seed=3)
     one_vmap = run_batch(model, lj.LGVI(), states, DT, N_STEPS, devices=jax.devices()[:1])
-    monkeypatch.setattr(sweep, "BLOCK", 3)  # 4 -> 2 blocks of 3, two padded entries
+    monkeypatch.setattr(sweep.batch, "BLOCK", 3)  # 4 -> 2 blocks of 3, two padded entries
     blocks = run_batch(model, lj.LGVI(), states, DT, N_STEPS, devices=jax.devices()[:1])
     assert set(blocks) == set(one_vmap)
     for key in one_vmap:
@@ -134,10 +134,10 @@ def test_accelerators_run_the_whole_share_as_one_block():
     cpu, gpu = (SimpleNamespace(platform=p) for p in ("cpu", "gpu"))
     scalar = sweep.sweep_method("car-pendulum", "hamel")
     arrays = sweep.sweep_method("car-pendulum", "hamel", scalar=False)
-    assert sweep._block(scalar, (cpu,), 4096) == sweep.SCALAR_BLOCK
-    assert sweep._block(arrays, (cpu, cpu), 4096) == sweep.BLOCK
-    assert sweep._block(scalar, (gpu,), 524288) == 524288
-    assert sweep._block(arrays, (gpu, gpu), 1001) == 501  # the share of each device
+    assert sweep.batch._block(scalar, (cpu,), 4096) == sweep.batch.SCALAR_BLOCK
+    assert sweep.batch._block(arrays, (cpu, cpu), 4096) == sweep.batch.BLOCK
+    assert sweep.batch._block(scalar, (gpu,), 524288) == 524288
+    assert sweep.batch._block(arrays, (gpu, gpu), 1001) == 501  # the share of each device
 
 
 @pytest.mark.parametrize("name", ["lgvi"])
@@ -397,7 +397,7 @@ def test_diagnostics_on_scalars_equal_the_array_form(make):
     inverse Legendre map (mass-matrix condition <= ~1e2): 50 * eps * 10 * 1e2 ~ 1e-11,
     taken as 1e-10."""
     from lgvi_jax.scalarize import on_scalars
-    from lgvi_jax.sweep import _diagnostics
+    from lgvi_jax.sweep.batch import _diagnostics
 
     model = make()
     states = initial_conditions(model, model.default_state(), 4, 0.3, 2)

@@ -1,0 +1,346 @@
+"""The batched rollout of a sweep: initial conditions drawn from ``(seed, i)``, one
+trajectory's running metrics (:mod:`lgvi_jax.rollout` with an observer), ``vmap`` in blocks
+and ``shard_map`` over the devices (:func:`run_batch`, :func:`batch_arguments`)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .. import rollout, so3
+from ..scalarize import on_scalars
+from .config import engine_name
+
+# ---------------------------------------------------------------------------------------
+# Initial conditions
+# ---------------------------------------------------------------------------------------
+
+
+def _perturb_vector(key, x, eps):
+    """``x + eps |x| z/√d`` (``eps z/√d`` if ``x = 0``), ``z`` standard normal."""
+    if x.size == 0:
+        return x
+    z = jax.random.normal(key, x.shape, x.dtype) / jnp.sqrt(x.size)
+    norm = jnp.linalg.norm(x)
+    return x + eps * jnp.where(norm > 0, norm, 1.0) * z
+
+
+def _one_initial_condition(model, state0, eps, key):
+    k_rot, k_w, k_v = jax.random.split(key, 3)
+    if hasattr(state0, "R"):
+        omega, v = model.velocities(state0.R, state0.mu, state0.q, state0.p)
+        u = jax.random.normal(k_rot, (3,), state0.R.dtype)
+        u = u / jnp.linalg.norm(u)
+        R = state0.R @ so3.exp(eps * u)
+        return model.state_from_velocities(
+            R, _perturb_vector(k_w, omega, eps), state0.q, _perturb_vector(k_v, v, eps)
+        )
+    flat = jnp.concatenate([state0.q, state0.p])
+    new = _perturb_vector(k_w, flat, eps)
+    n = state0.q.shape[0]
+    return type(state0)(q=new[:n], p=new[n:])
+
+
+@eqx.filter_jit
+def _initial_conditions(model, state0, eps, seed, indices):
+    base = jax.random.key(seed)
+    keys = jax.vmap(lambda i: jax.random.fold_in(base, i))(indices)
+    # One condition at a time (lax.map), not vmap: every condition is then computed by the
+    # same unbatched code whatever n is, so condition i is bit-for-bit the same in any
+    # chunking (under vmap, XLA's vector and remainder loops can round differently: 1 ulp).
+    return jax.lax.map(lambda key: _one_initial_condition(model, state0, eps, key), keys)
+
+
+def initial_conditions(model, state0, n: int, perturb: float, seed: int,
+                       start: int = 0) -> Any:
+    """Initial conditions ``start, ..., start + n - 1`` of a sweep, batched (leading axis
+    ``n``). Condition ``i`` depends only on ``(seed, i)`` (``jax.random.fold_in``), so any
+    chunking of the index range gives the same states."""
+    from .. import _cache
+
+    indices = np.arange(start, start + n, dtype=np.uint32)
+    # The cached program returns the states' leaves: jax.export serialises only the
+    # pytree nodes registered with it, and a state class is not (every run traced again).
+    leaves = _cache.call("sweep.initial_conditions", _initial_condition_leaves, model,
+                         state0, np.float64(perturb), np.uint32(seed % 2**32), indices)
+    return jax.tree.unflatten(jax.tree.structure(state0), leaves)
+
+
+def _initial_condition_leaves(model, state0, eps, seed, indices):
+    return jax.tree.leaves(_initial_conditions(model, state0, eps, seed, indices))
+
+
+# ---------------------------------------------------------------------------------------
+# The batched rollout
+# ---------------------------------------------------------------------------------------
+
+
+def _diagnostics(model, state):
+    """The model's invariants and, on SO(3) x Rⁿ, the orthogonality error ‖RᵀR − I‖_F."""
+    out = dict(model.invariants(state))
+    if hasattr(state, "R"):
+        out["orthogonality_error"] = so3.orthogonality_error(state.R)
+    return out
+
+
+def _per_member(tree):
+    """``tree`` itself; under ``vmap``, with every leaf batched (unbatched ones broadcast).
+    For a loop's initial carry: JAX batches a loop by searching for the carries that become
+    batched, retracing the body (with every Newton solve in it) at each search step; a carry
+    batched from the start settles at once."""
+
+    @jax.custom_batching.custom_vmap
+    def ident(tree):
+        return tree
+
+    @ident.def_vmap
+    def _rule(axis_size, in_batched, tree):
+        (batched,) = in_batched
+        out = jax.tree.map(
+            lambda x, b: x if b else jnp.broadcast_to(x, (axis_size, *jnp.shape(x))),
+            tree, batched)
+        return out, jax.tree.map(lambda _: True, out)
+
+    return ident(tree)
+
+
+def _start(model, method, state0, dt) -> rollout.Carry:
+    """The rollout's initial carry, every leaf per member except the step index, which
+    stays shared: the metrics' ``cond`` on it then stays a branch under ``vmap`` (metrics
+    every K steps cost 1/K), where a per-member index would turn it into a selection."""
+    carry = rollout.start(model, method, state0, dt)
+    return eqx.tree_at(lambda c: c.k, _per_member(carry), carry.k)
+
+
+def _sweep_one(model, method, state0, dt, n_steps, sample_every):
+    """One trajectory of ``n_steps`` (a run-time value) with running metrics."""
+    # On scalars (scalarize.on_scalars): the invariants of a model derived by autodiff (the
+    # inverse Legendre map through the kinetic-energy Hessian) are dozens of small array
+    # operations that in a loop cost more than the step (heavy top hamel, metrics every
+    # step, one trajectory: 2.2e5 steps/s on arrays, 2.15e6 on scalars).
+    on_scalars_ = on_scalars(_diagnostics, model, state0)
+
+    def diagnostics(state):
+        return on_scalars_(model, state)
+
+    inv0 = diagnostics(state0)
+    e0 = inv0["energy"]
+    scale = jnp.where(e0 != 0, jnp.abs(e0), 1.0)
+    names = [k for k in inv0 if k not in ("energy", "orthogonality_error")]
+    on_group = hasattr(state0, "R")
+    ftype = e0.dtype
+
+    def measure(state):
+        inv = diagnostics(state)
+        out = {"energy_error": jnp.abs(inv["energy"] - e0) / scale}
+        for k in names:
+            out[f"{k}_drift"] = jnp.max(jnp.abs(inv[k] - inv0[k]))
+        if on_group:
+            out["orthogonality_error"] = inv["orthogonality_error"]
+        return out
+
+    zero_metrics = jax.tree.map(jnp.zeros_like, measure(state0))
+    # The maxima start at NaN (fmax ignores it): a trajectory that fails before its first
+    # sample records NaN, not a misleading 0.
+    nan_metrics = jax.tree.map(lambda x: jnp.full_like(x, jnp.nan), zero_metrics)
+
+    def observe(acc, c):
+        sample = (c.k % sample_every == 0) | (c.k == n_steps)
+
+        def update(args):
+            maxima, last = args
+            m = measure(c.state)
+            maxima = jax.tree.map(lambda a, b: jnp.where(c.ok, jnp.fmax(a, b), a), maxima, m)
+            last = jax.tree.map(lambda b: jnp.where(c.ok, b, jnp.nan), m)
+            return maxima, last
+
+        return jax.lax.cond(sample, update, lambda a: a, acc)
+
+    carry, acc = _start(model, method, state0, dt), _per_member((nan_metrics, zero_metrics))
+    end, (maxima, last) = rollout.advance(model, method, dt, carry, n_steps, observe, acc)
+    steps_done = jnp.where(end.failed_step >= 0, end.failed_step + 1, n_steps)
+    out = {
+        "energy_error_max": maxima["energy_error"],
+        "energy_error_final": last["energy_error"],
+    }
+    for k in names:
+        out[f"{k}_drift_max"] = maxima[f"{k}_drift"]
+    if on_group:
+        out["orthogonality_error_max"] = maxima["orthogonality_error"]
+    out["newton_mean"] = end.newton_steps / jnp.maximum(steps_done, 1).astype(ftype)
+    out["newton_max"] = end.newton_steps_max
+    out["result"] = end.result
+    out["failed_step"] = end.failed_step
+    return out
+
+
+def _final_one(model, method, state0, dt, n_steps, sample_every):
+    """One trajectory, no metrics: the final state and the result code (benchmarks)."""
+    del sample_every
+    end, _ = rollout.advance(model, method, dt, _start(model, method, state0, dt), n_steps)
+    return {"state": end.state, "result": end.result, "failed_step": end.failed_step}
+
+
+_ONE = {"metrics": _sweep_one, "final": _final_one}
+_RUNNERS: dict[Any, Callable] = {}
+
+#: The most trajectories one device integrates as one vectorised batch; a larger share runs
+#: as a sequence of equal blocks (``lax.map`` over ``vmap``), whose working set stays in
+#: cache. Measured on one core (lgvi, mass chord, 2000 steps): 1.23e6 steps/s for 512 at
+#: once, 8.9e5 for 1024 or 2048 at once, 1.22e6 for 2048 in blocks of 512.
+BLOCK = 512
+#: The block size for the steps emitted on scalars (the scalar engine): their hundreds of
+#: live values are each a vector over the block, so the working set grows with it. Of 16,
+#: 32, 64, 128 (and earlier 256, 512), 16 and 32 ran fastest across models and methods,
+#: with the same compile time (CHANGELOG, 2026-12-05; measured on an AVX-512 CPU only);
+#: the array engine has no such preference.
+SCALAR_BLOCK = 32
+
+
+def _vmap_in_blocks(f, states, block: int):
+    """``vmap(f)(states)`` over the leading axis, as a sequence of at most ``block``-sized
+    vectorised blocks: ``ceil(B / block)`` blocks of equal size, the last padded with copies
+    of the first state (computed and dropped), so that the step is compiled once."""
+    batch = jax.tree.leaves(states)[0].shape[0]
+    if batch == 1:  # one trajectory: the unbatched program (compiles in 5-6 s instead of
+        # 7.5-8.5 s on scalars, car-pendulum; runs as fast)
+        out = f(jax.tree.map(lambda x: x[0], states))
+        return jax.tree.map(lambda y: y[None], out)
+    if batch <= block:
+        return jax.vmap(f)(states)
+    n_blocks = -(-batch // block)
+    size = -(-batch // n_blocks)
+    pad = n_blocks * size - batch
+
+    def blocks(x):
+        x = jnp.concatenate([x, jnp.broadcast_to(x[:1], (pad, *x.shape[1:]))]) if pad else x
+        return x.reshape(n_blocks, size, *x.shape[1:])
+
+    out = jax.lax.map(jax.vmap(f), jax.tree.map(blocks, states))
+    return jax.tree.map(lambda y: y.reshape(n_blocks * size, *y.shape[2:])[:batch], out)
+
+
+def _runner(devices: tuple, kind: str = "metrics", block: int = BLOCK) -> Callable:
+    """A jitted batched rollout (``kind`` = ``"metrics"`` or ``"final"``), sharded over
+    ``devices`` with ``shard_map``, each device's share in blocks of at most ``block``
+    (cached per device set, kind and block size)."""
+    key = (devices, kind, block)
+    if key in _RUNNERS:
+        return _RUNNERS[key]
+    one = _ONE[kind]
+
+    def batched(params, static, states, dt, n_steps, sample_every):
+        model, method = eqx.combine(params, static)
+        return _vmap_in_blocks(lambda s: one(model, method, s, dt, n_steps, sample_every),
+                               states, block)
+
+    if len(devices) == 1:
+        fn = jax.jit(batched, static_argnums=1)
+    else:
+        from jax.sharding import PartitionSpec as P
+
+        mesh = jax.sharding.Mesh(np.array(devices), ("batch",))
+
+        def sharded(params, static, states, dt, n_steps, sample_every):
+            inner = jax.shard_map(
+                lambda p, s, d, n, e: batched(p, static, s, d, n, e),
+                mesh=mesh,
+                in_specs=(P(), P("batch"), P(), P(), P()),
+                out_specs=P("batch"),
+                check_vma=False,
+            )
+            return inner(params, states, dt, n_steps, sample_every)
+
+        fn = jax.jit(sharded, static_argnums=1)
+    _RUNNERS[key] = fn
+    return fn
+
+
+def _sharding(devices, batch: bool):
+    if len(devices) == 1:
+        return jax.sharding.SingleDeviceSharding(devices[0])
+    from jax.sharding import NamedSharding
+    from jax.sharding import PartitionSpec as P
+
+    mesh = jax.sharding.Mesh(np.array(devices), ("batch",))
+    return NamedSharding(mesh, P("batch") if batch else P())
+
+
+def _place(tree, devices, batch: bool):
+    """``tree`` on ``devices``; a :class:`jax.ShapeDtypeStruct` leaf (an input not computed
+    yet, :func:`_prepare_batch`) gets the sharding the array will have."""
+    sharding = _sharding(devices, batch)
+
+    def put(x):
+        if isinstance(x, jax.ShapeDtypeStruct):
+            return jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sharding)
+        return jax.device_put(x, devices[0] if len(devices) == 1 else sharding)
+
+    return jax.tree.map(put, tree)
+
+
+def _prepare_batch(model, method, state0, batch: int, dt, n_steps, sample_every,
+                   devices) -> None:
+    """Load and compile the batched rollout that :func:`run_batch` will run on ``batch``
+    states shaped like ``state0`` (``_cache.prepare``; for a thread beside the initial
+    conditions)."""
+    from .. import _cache
+
+    try:
+        states = jax.tree.map(lambda x: jax.ShapeDtypeStruct((batch, *jnp.shape(x)),
+                                                             jnp.result_type(x)), state0)
+        fn, args = batch_arguments(model, method, states, dt, n_steps,
+                                   sample_every=sample_every, devices=devices)
+        _cache.prepare("sweep.run_batch", fn, *args)
+    except Exception:  # only a head start: run_batch reports any error itself
+        pass
+
+
+def batch_arguments(model, method, states, dt, n_steps, *, sample_every=1, devices=None,
+                    kind="metrics"):
+    """``(runner, args)`` of a batched rollout, the arguments placed on ``devices``: call
+    ``runner(*args)``, or ``runner.lower(*args).compile()`` to time compilation apart.
+    ``states`` may be :class:`jax.ShapeDtypeStruct` leaves (given their sharding here)."""
+    method.check_model(model)
+    batch = jax.tree.leaves(states)[0].shape[0]
+    devices = tuple(jax.devices() if devices is None else devices)
+    if batch % len(devices):
+        devices = devices[:1]
+    params, static = eqx.partition((model, method), eqx.is_array)
+    args = (_place(params, devices, False), static, _place(states, devices, True),
+            jnp.float64(dt), jnp.int32(n_steps), jnp.int32(sample_every))
+    block = _block(method, devices, batch)
+    return _runner(devices, kind, block), args
+
+
+def _block(method, devices, batch: int) -> int:
+    """The vectorised block of one device's share: :data:`BLOCK` or :data:`SCALAR_BLOCK`
+    on CPUs (whose caches the working set must fit), the whole share on accelerators
+    (whose throughput needs every trajectory at once; a sequence of blocks would
+    serialise them)."""
+    if devices[0].platform != "cpu":
+        return max(1, -(-batch // len(devices)))
+    return BLOCK if engine_name(method) == "general" else min(BLOCK, SCALAR_BLOCK)
+
+
+def run_batch(model, method, states, dt: float, n_steps: int, *, sample_every: int = 1,
+              devices: Sequence | None = None) -> dict[str, np.ndarray]:
+    """Integrate a batch of initial states (leading axis ``B``) for ``n_steps`` steps of
+    ``dt`` and return the per-trajectory metrics as NumPy arrays of shape ``(B,)``.
+
+    The batch is split over ``devices`` (default: all of ``jax.devices()`` that divide
+    ``B``, else one). ``dt``, ``n_steps`` and ``sample_every`` are run-time values.
+    """
+    from .. import _cache
+
+    fn, args = batch_arguments(model, method, states, dt, n_steps, sample_every=sample_every,
+                               devices=devices)
+    out = _cache.call("sweep.run_batch", fn, *args)  # traced once per cache (CLI)
+    return {k: np.asarray(v) for k, v in out.items()}
+
+
