@@ -26,6 +26,7 @@ for name in ("lgvi", "hamel-exact"):
     out[name] = {"R": np.asarray(state.R).tolist(), "mu": np.asarray(state.mu).tolist(),
                  "q": np.asarray(state.q).tolist(), "code": int(code)}
 out["flags"] = __import__("os").environ.get("XLA_FLAGS", "")
+out["added"] = list(lj._xla.added())
 print(json.dumps(out))
 """
 
@@ -42,6 +43,9 @@ def test_setting_is_applied_at_import_and_changes_only_rounding():
     assert tuned.returncode == 0 and plain.returncode == 0, tuned.stderr + plain.stderr
     tuned, plain = json.loads(tuned.stdout), json.loads(plain.stdout)
     assert all(entry in tuned["flags"].split() for entry in _xla.flags())
+    # What the import says it added is what it added: everything in a clean environment,
+    # nothing with the opt-out.
+    assert tuned["added"] == _xla.flags() and plain["added"] == []
     assert "xla_backend_extra_options" not in plain["flags"]
     assert "xla_cpu_use_fusion_emitters" not in plain["flags"]
     assert "xla_cpu_prefer_vector_width" not in plain["flags"]
