@@ -54,3 +54,24 @@ def as_float_array(name: str, value: Any, owner: str) -> jax.Array:
         return jnp.asarray(value, dtype=jnp.float64)
     except (TypeError, ValueError):
         raise ValueError(f"{owner}: {name} must be a number or an array, got {value!r}") from None
+
+
+def symmetric_3x3(name: str, value: Any, owner: str) -> tuple[np.ndarray, float]:
+    """``value`` as a symmetric 3x3 float64 NumPy matrix and its largest entry's size;
+    ``ValueError`` naming ``owner`` and ``name`` unless it is 3x3, finite and symmetric to
+    1e-12 of that size (the checks shared by every inertia). Concrete values only."""
+    arr = np.asarray(value, dtype=np.float64)
+    if arr.shape != (3, 3):
+        raise ValueError(f"{owner}: {name} must be a 3x3 matrix, got shape {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{owner}: {name} must be finite, got {arr.tolist()}")
+    scale = max(float(np.max(np.abs(arr))), 1e-300)
+    if np.max(np.abs(arr - arr.T)) > 1e-12 * scale:
+        raise ValueError(f"{owner}: {name} must be symmetric, got {arr.tolist()}")
+    return 0.5 * (arr + arr.T), scale
+
+
+def check_nonnegative(name: str, value: Any, owner: str) -> None:
+    """Raise ``ValueError`` unless the scalar ``value`` is finite and >= 0."""
+    if is_concrete(value) and not (np.isfinite(value) and value >= 0):
+        raise ValueError(f"{owner}: {name} must be finite and >= 0, got {float(value)!r}")

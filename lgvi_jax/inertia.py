@@ -53,6 +53,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._checks import symmetric_3x3
+
 __all__ = [
     "centroidal_inertia",
     "inertia_from_params",
@@ -99,15 +101,7 @@ def params_from_inertia(J_c: Any) -> jax.Array:
     *strictly* physical inertia (``Σ = ½ tr(J_c) I − J_c`` positive definite; a body flat
     in a plane, on the boundary, has no finite ``θ``). Concrete values only.
     """
-    arr = np.asarray(J_c, dtype=np.float64)
-    if arr.shape != (3, 3):
-        raise ValueError(f"params_from_inertia: J_c must be a 3x3 matrix, got shape {arr.shape}")
-    if not np.all(np.isfinite(arr)):
-        raise ValueError(f"params_from_inertia: J_c must be finite, got {arr.tolist()}")
-    scale = max(float(np.max(np.abs(arr))), 1e-300)
-    if np.max(np.abs(arr - arr.T)) > 1e-12 * scale:
-        raise ValueError(f"params_from_inertia: J_c must be symmetric, got {arr.tolist()}")
-    arr = 0.5 * (arr + arr.T)
+    arr, scale = symmetric_3x3("J_c", J_c, "params_from_inertia")
     S = 0.5 * np.trace(arr) * np.eye(3) - arr
     sigma = np.linalg.eigvalsh(S)
     if sigma[0] <= 1e-14 * scale:

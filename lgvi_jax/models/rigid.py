@@ -47,7 +47,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import so3
-from .._checks import check_float64_finite, is_concrete
+from .._checks import check_float64_finite, is_concrete, symmetric_3x3
 from ..linalg import spd_solve
 
 __all__ = ["AbstractRigidBodyModel", "RigidState", "check_inertia", "left_gradient"]
@@ -92,15 +92,8 @@ def check_inertia(name: str, J, owner: str, *, strict: bool = True) -> None:
     only (skipped under tracing)."""
     if not is_concrete(J):
         return
-    arr = np.asarray(J, dtype=np.float64)
-    if arr.shape != (3, 3):
-        raise ValueError(f"{owner}: {name} must be a 3x3 matrix, got shape {arr.shape}")
-    if not np.all(np.isfinite(arr)):
-        raise ValueError(f"{owner}: {name} must be finite, got {arr.tolist()}")
-    scale = max(float(np.max(np.abs(arr))), 1e-300)
-    if np.max(np.abs(arr - arr.T)) > 1e-12 * scale:
-        raise ValueError(f"{owner}: {name} must be symmetric, got {arr.tolist()}")
-    lam = np.linalg.eigvalsh(0.5 * (arr + arr.T))
+    arr, scale = symmetric_3x3(name, J, owner)
+    lam = np.linalg.eigvalsh(arr)
     if lam[0] <= 0:
         raise ValueError(
             f"{owner}: {name} is not a physical inertia: it must be positive definite, "

@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import so3
-from .._checks import as_float_array, check_positive, is_concrete
+from .._checks import as_float_array, check_nonnegative, check_positive, is_concrete
 from ..linalg import spd_solve
 from .rigid import AbstractRigidBodyModel, RigidState, check_inertia
 
@@ -148,8 +148,7 @@ class HeavyTop(AbstractRigidBodyModel):
         owner = "HeavyTop"
         check_inertia("J", self.J, owner)
         check_positive("m", self.m, owner)
-        if is_concrete(self.g) and not (np.isfinite(self.g) and self.g >= 0):
-            raise ValueError(f"{owner}: g must be finite and >= 0, got {float(self.g)!r}")
+        check_nonnegative("g", self.g, owner)
         _check_shape("rho_c", self.rho_c, (3,), owner)
         _check_finite("rho_c", self.rho_c, owner)
         _check_rotation("R0", self.R0, owner)
@@ -220,8 +219,7 @@ class CarPendulum(AbstractRigidBodyModel):
         owner = "CarPendulum"
         check_positive("m", self.m, owner)
         check_positive("M", self.M, owner)
-        if is_concrete(self.g) and not (np.isfinite(self.g) and self.g >= 0):
-            raise ValueError(f"{owner}: g must be finite and >= 0, got {float(self.g)!r}")
+        check_nonnegative("g", self.g, owner)
         check_inertia("J", self.J, owner)
         for name, shape in (("rho_c", (3,)), ("q0", (2,)), ("v0", (2,)), ("omega0", (3,))):
             _check_shape(name, getattr(self, name), shape, owner)

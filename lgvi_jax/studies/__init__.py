@@ -14,6 +14,18 @@ import sys
 import time
 from collections.abc import Callable
 
+#: The methods the work-precision and stability studies run on SO(3) x R^n (the
+#: car-pendulum) and on R^n (the oscillator), by scene name; names that do not resolve are
+#: skipped and listed in the studies' summaries.
+RIGID_METHOD_NAMES: tuple[str, ...] = (
+    "lgvi", "hamel", "hamel-cayley", "hamel-exact", "hamel-cayley-exact", "rk4", "gl4",
+    "rkmk4", "lgvi@4", "lgvi@6", "lgvi@8",
+)
+EUCLIDEAN_METHOD_NAMES: tuple[str, ...] = (
+    "rk4", "gl4", "gl6", "verlet", "galerkin4", "galerkin6", "verlet@4", "verlet@6",
+    "verlet@8",
+)
+
 
 def _stderr(message: str) -> None:
     print(message, file=sys.stderr, flush=True)

@@ -60,19 +60,9 @@ from lgvi_jax.diagnostics import environment
 from lgvi_jax.models import CarPendulum, HarmonicOscillator, PhaseState
 from lgvi_jax.plotting import figure, method_style, positive, save
 from lgvi_jax.scenes import resolve_methods
-from lgvi_jax.studies import script_main
+from lgvi_jax.studies import EUCLIDEAN_METHOD_NAMES, RIGID_METHOD_NAMES, script_main
 from lgvi_jax.trajectory import RESULTS
 
-#: Methods probed, by scene name; names that do not resolve (not in this checkout) are
-#: skipped and listed in the summary.
-RIGID_METHOD_NAMES: tuple[str, ...] = (
-    "lgvi", "hamel", "hamel-cayley", "hamel-exact", "hamel-cayley-exact", "rk4", "gl4",
-    "rkmk4", "lgvi@4", "lgvi@6", "lgvi@8",
-)
-EUCLIDEAN_METHOD_NAMES: tuple[str, ...] = (
-    "rk4", "gl4", "gl6", "verlet", "galerkin4", "galerkin6", "verlet@4", "verlet@6",
-    "verlet@8",
-)
 QUICK_RIGID = ("rk4",)
 QUICK_EUCLIDEAN = ("rk4", "verlet", "gl4", "galerkin4")
 

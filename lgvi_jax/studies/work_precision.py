@@ -74,23 +74,13 @@ from lgvi_jax.models import CarPendulum, HarmonicOscillator, PhaseState
 from lgvi_jax.plotting import figure, method_style, positive, save
 from lgvi_jax.reference import HandReference, moving_scene
 from lgvi_jax.scenes import get_scene, resolve_methods
-from lgvi_jax.studies import script_main
+from lgvi_jax.studies import EUCLIDEAN_METHOD_NAMES, RIGID_METHOD_NAMES, script_main
 
 try:  # optional peer (the ``bench`` extra)
     import diffrax
 except ImportError:  # pragma: no cover - depends on the environment
     diffrax = None
 
-#: Our methods for the car-pendulum, by scene name; names that do not resolve are skipped.
-RIGID_METHOD_NAMES: tuple[str, ...] = (
-    "lgvi", "hamel", "hamel-cayley", "hamel-exact", "hamel-cayley-exact", "rk4", "gl4",
-    "rkmk4", "lgvi@4", "lgvi@6", "lgvi@8",
-)
-#: Our methods for the oscillator.
-EUCLIDEAN_METHOD_NAMES: tuple[str, ...] = (
-    "rk4", "gl4", "gl6", "verlet", "galerkin4", "galerkin6", "verlet@4", "verlet@6",
-    "verlet@8",
-)
 #: Quick mode (tests, ``reproduce --quick``): a few methods, short horizons.
 QUICK_RIGID = ("lgvi",)
 QUICK_EUCLIDEAN = ("rk4", "verlet", "gl4")
