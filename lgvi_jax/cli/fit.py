@@ -1,0 +1,156 @@
+"""``lgvi-jax fit car-pendulum --data OBS.npz``: fit parameters (inertia, mass, ...,
+initial velocities) to observed attitudes and cart positions by differentiating a
+variational integrator's rollout; writes the fit to ``--out`` (.json) and prints it
+(``--json``: one object). Exit status 1 when a rollout fails (the last good iterate is
+written), 2 on bad input."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from .._io import atomic_write_json
+from ._common import (
+    PROG,
+    UsageError,
+    _check_writable_file,
+    _csv_list,
+    _float,
+    _positive_int,
+    parse_set,
+)
+
+#: ``--init`` names of ``lgvi-jax fit`` (the initial state's R0 and q0 come from the data).
+FIT_INIT_NAMES = ("J", "rho_c", "m", "M", "g", "omega0", "v0")
+
+
+def cmd_fit(args: argparse.Namespace) -> int:
+    from ..identify import FITTABLE, fit, load_observations
+    from ..scenes import get_scene
+
+    scene = get_scene(args.system)
+    if args.method not in scene.methods:
+        raise UsageError(f"--method {args.method!r} is not available for {scene.name}; "
+                         f"choose from: {', '.join(scene.methods)}")
+    if not math.isfinite(args.dt) or args.dt <= 0:
+        raise UsageError(f"--dt must be a finite number > 0, got {args.dt!r}")
+    names = _csv_list(args.fit, str, "--fit")
+    if not names:
+        raise UsageError(f"--fit {args.fit!r}: name at least one of {', '.join(FITTABLE)}")
+    for name in names:
+        if name not in FITTABLE:
+            raise UsageError(f"--fit {name!r}: choose from {', '.join(FITTABLE)}")
+    if len(set(names)) != len(names):
+        raise UsageError(f"--fit {args.fit!r}: a name is given twice")
+    if args.lr is not None and not (math.isfinite(args.lr) and args.lr > 0):
+        raise UsageError(f"--lr must be a finite number > 0, got {args.lr!r}")
+    out = Path(args.out)
+    if out.suffix != ".json":
+        raise UsageError(f"--out {out}: expected a file name ending in .json")
+    init = {}
+    for name, value in parse_set(args.init).items():
+        if name not in FIT_INIT_NAMES:
+            raise UsageError(f"--init {name}: choose from {', '.join(FIT_INIT_NAMES)} (the "
+                             "initial attitude and cart position come from --data)")
+        init[name] = value
+    data = Path(args.data)
+    if not data.is_file():
+        raise UsageError(f"--data {data}: no such file")
+    try:
+        obs = load_observations(data, args.dt)
+    except ValueError as err:
+        raise UsageError(f"--data {err}") from None
+    try:
+        overrides = {k: v for k, v in init.items()}
+        overrides.update(R0=np.ravel(np.asarray(obs.R0)), q0=np.asarray(obs.q0))
+        for key in ("omega0", "v0"):
+            overrides.setdefault(key, np.asarray(getattr(obs, key)))
+        model, _ = scene.build(overrides)
+    except ValueError as err:
+        raise UsageError(f"--init: {err}") from None
+    if "omega0" in init and "omega0" not in names:
+        raise UsageError("--init omega0 is only allowed with --fit omega0 (otherwise the "
+                         "observed initial velocity is used)")
+    if "v0" in init and "v0" not in names:
+        raise UsageError("--init v0 is only allowed with --fit v0 (otherwise the observed "
+                         "initial velocity is used)")
+    _check_writable_file(out)
+    # fit() replaces the model's initial state by the observations'; a given --init
+    # omega0/v0 is the starting value of the fitted velocity instead.
+    from ..identify import Observations
+
+    obs = Observations(t=obs.t, R=obs.R, q=obs.q, R0=obs.R0, omega0=model.omega0,
+                       q0=obs.q0, v0=model.v0)
+    try:
+        result = fit(obs, args.dt, names=names, model=model, method=args.method,
+                     optimizer=args.optimizer, iterations=args.iterations, lr=args.lr,
+                     progress=not args.json)
+    except ValueError as err:
+        raise UsageError(str(err)) from None
+    report = {
+        "system": scene.name,
+        "data": str(data),
+        **result.to_json(),
+        "observations": int(np.size(obs.t)),
+        "init": {k: v.tolist() for k, v in init.items()},
+    }
+    atomic_write_json(out, report)
+    if args.json:
+        print(json.dumps({k: v for k, v in report.items() if k != "loss_history"}))
+    else:
+        J = np.asarray(report["values"]["J"])
+        rows = "\n".join("  " + "  ".join(f"{x:12.6g}" for x in row) for row in J)
+        fitted = ", ".join(f"{k} = {np.round(report['values'][k], 6).tolist()}"
+                           for k in names if k != "J")
+        print(f"{scene.name} / {result.method}: fitted {', '.join(names)} to "
+              f"{report['observations']} observations with {args.optimizer}, "
+              f"{result.iterations} iterations ({result.stopped}) in "
+              f"{result.wall_time_s:.3g} s\n"
+              f"loss {result.loss_initial:.4e} -> {result.loss_final:.4e}")
+        if "J" in names:
+            print(f"J about the pivot:\n{rows}")
+        if fitted:
+            print(fitted)
+        print(f"wrote {out}")
+    if result.stopped == "non-finite":
+        print(f"{PROG} fit: stopped: a rollout failed (non-finite values); wrote the last "
+              "good iterate", file=sys.stderr)
+        return 1
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """Add the ``fit`` command to the subcommands ``sub``."""
+    fi = sub.add_parser(
+        "fit", help="fit parameters (inertia, ...) to an observed trajectory",
+        description="Fit the car-pendulum's parameters to observed attitudes and cart "
+        "positions (OBS.npz: t (n,), R (n,3,3), q (n,2), R0, omega0, q0, v0) by "
+        "differentiating a variational integrator's rollout; writes FIT.json.")
+    fi.add_argument("system", choices=["car-pendulum"], help="the system")
+    fi.add_argument("--data", required=True, metavar="OBS.npz", help="observations (.npz)")
+    fi.add_argument("--method", required=True, help="integrator (see `lgvi-jax info`)")
+    fi.add_argument("--dt", required=True, type=_float,
+                    help="step size; every observation time must be a multiple of it")
+    fi.add_argument("--fit", required=True, metavar="NAME[,NAME...]",
+                    help="quantities to fit: J, rho_c, m, M, g, omega0, v0")
+    fi.add_argument("--init", action="append", metavar="NAME=V1[,V2...]",
+                    help="starting value of a fitted quantity, or value of a fixed one "
+                    "(repeatable; J: 9 numbers row-major, about the pivot; default: the "
+                    "paper's values)")
+    fi.add_argument("--iterations", type=_positive_int, default=300, metavar="N",
+                    help="most optimiser iterations (default 300)")
+    fi.add_argument("--lr", type=_float, default=None,
+                    help="initial damping (gauss-newton, default 1e-3), learning rate "
+                    "(adam, default 1e-2), or first-step scale (lbfgs, default 1)")
+    fi.add_argument("--optimizer", choices=["lbfgs", "adam", "gauss-newton"],
+                    default="gauss-newton", help="Levenberg-Marquardt with forward-mode "
+                    "Jacobians (default), L-BFGS, or optax Adam")
+    fi.add_argument("--out", required=True, metavar="FIT.json", help="output file (.json)")
+    fi.add_argument("--json", action="store_true",
+                    help="print a one-object JSON summary (no progress bar)")
+    fi.set_defaults(func=cmd_fit)
