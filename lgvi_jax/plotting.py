@@ -17,7 +17,8 @@ def _pyplot():
 
     return plt
 
-__all__ = ["METHOD_STYLE", "figure", "method_style", "save", "style_for"]
+__all__ = ["METHOD_STYLE", "envelope", "figure", "method_style", "save", "style_for",
+           "window_bounds"]
 
 #: One colour and line style per method name, shared by every figure.
 METHOD_STYLE: dict[str, dict[str, Any]] = {
@@ -60,6 +61,49 @@ def save(fig, path: Path | str) -> Path:
     atomic_write(path, lambda fh: fig.savefig(fh, format=fmt, dpi=150))
     _pyplot().close(fig)
     return path
+
+
+def window_bounds(n: int, windows: int) -> np.ndarray:
+    """Start indices of ``min(windows, n)`` consecutive windows over ``n`` samples, and ``n``
+    at the end: window ``k`` holds samples ``bounds[k]:bounds[k + 1]``. Every sample is in
+    exactly one window and the window sizes differ by at most one (as ``numpy.array_split``)."""
+    if n < 1 or windows < 1:
+        raise ValueError(f"window_bounds: need n >= 1 and windows >= 1, got {n}, {windows}")
+    k = min(int(windows), int(n))
+    return (np.arange(k + 1) * n) // k
+
+
+def envelope(t: Any, y: Any, windows: int = 400, *, min_span: float | None = None,
+             absolute: bool = True, lower: bool = False) -> tuple[np.ndarray, ...]:
+    """The envelope of a long sampled signal: its largest value over each of ``windows``
+    consecutive windows of samples (:func:`window_bounds`: every sample in exactly one
+    window), so that ``10⁵``–``10⁶`` saved points are drawn as one curve of running maxima
+    whose level shows at a glance whether an error stays bounded or drifts.
+
+    ``min_span``: fewer windows if needed, so that each spans at least about ``min_span``
+    of ``t``; make it longer than the signal's oscillation period, so that a window's
+    maximum is the envelope's level and not wherever the oscillation happens to be.
+
+    Returns ``(t_window, upper)``, or ``(t_window, upper, low)`` with ``lower=True``:
+    ``t_window`` the middle of each window's time span, ``upper`` the maximum and ``low``
+    the minimum over the window of ``|y|`` (``absolute=True``, for errors on a log axis) or
+    of ``y``. With ``windows >= len(y)`` each sample is its own window (the signal itself).
+    A NaN in a window makes its maximum and minimum NaN (a failed run is not hidden)."""
+    t = np.asarray(t, dtype=np.float64)
+    y = np.asarray(y, dtype=np.float64)
+    if t.ndim != 1 or y.shape != t.shape:
+        raise ValueError(f"envelope: t and y must be 1D of the same length, got shapes "
+                         f"{t.shape} and {y.shape}")
+    values = np.abs(y) if absolute else y
+    if min_span is not None and len(t) > 1:
+        windows = max(1, min(windows, int((t[-1] - t[0]) // min_span)))
+    starts = window_bounds(len(y), windows)
+    first, last = starts[:-1], starts[1:] - 1
+    t_window = 0.5 * (t[first] + t[last])
+    upper = np.maximum.reduceat(values, first)
+    if not lower:
+        return t_window, upper
+    return t_window, upper, np.minimum.reduceat(values, first)
 
 
 def positive(values: Any, floor: float = 1e-17) -> np.ndarray:

@@ -67,7 +67,8 @@ def test_reproduce_refuses_unwritable_out(tmp_path, capsys):
 CAR_FILES = ("fig5_cart_trajectory.png", "fig6_pendulum_trajectory.png",
              "fig7_cart_components.png", "fig8_pendulum_components.png", "fig9_energy.png",
              "fig10_energy_error.png", "fig11_orthogonality_error.png", "momentum_maps.png",
-             "step_sweep.png", "long_run_energy.png", "summary.md", "results.json")
+             "step_sweep.png", "long_run_energy.png", "motion_snapshots.png", "summary.md",
+             "results.json")
 
 
 def test_car_pendulum_stage_outputs_and_numbers(quick_run):

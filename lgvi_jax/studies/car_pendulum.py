@@ -9,8 +9,12 @@ methods — ``lgvi`` (the general-form LGVI) and ``hamel`` (the paper's Hamel VI
 * a step-size sweep (h = 0.02 … 0.0025 over 5 s, from a state with non-zero cart momentum):
   state error against a reference, energy error, momentum-map errors, run time; error
   against h with fitted slopes, and error against run time (work–precision);
-* a long run (10^6 steps of h = 5e-3 per VI method; 2·10^4 in quick mode) for the
-  energy-drift claim;
+* a long run (10^6 steps of h = 5e-3 per VI method; 10^4 in quick mode) for the
+  energy-drift claim, drawn as the maximum energy error over windows of time (a flat
+  band: bounded, no drift);
+* a 3D view of the motion from the saved states of the paper run (cart, rod, mass centre,
+  body axes): ``motion_snapshots.png`` (2x4 snapshots) and ``motion.gif``; in a notebook,
+  :func:`motion_animation`;
 * ``summary.md`` with a table and a verdict on each claim of the paper, computed from the
   numbers, and ``results.json`` (written last).
 
@@ -41,7 +45,7 @@ from lgvi_jax._io import atomic_write_text
 from lgvi_jax.diagnostics import drift_ratio, environment, observed_order
 from lgvi_jax.integrators import RIGID_METHODS, resolve_method
 from lgvi_jax.models import CarPendulum
-from lgvi_jax.plotting import figure, positive, save, style_for
+from lgvi_jax.plotting import envelope, figure, positive, save, style_for
 from lgvi_jax.simulate import simulate_timed
 from lgvi_jax.studies import script_main
 
@@ -61,6 +65,11 @@ LABELS = {
 }
 SWEEP_STEPS = (0.02, 0.01, 0.005, 0.0025)
 SWEEP_SEGMENTS = 10  # divides T/h for every swept step
+#: The long run's energy error is drawn as its maximum over this many windows of time, each
+#: at least LONG_RUN_MIN_WINDOW_S long (the error oscillates with the swings, ~1 s, and is
+#: modulated over ~7 s: a shorter window would catch the oscillation, not its envelope).
+LONG_RUN_WINDOWS = 100
+LONG_RUN_MIN_WINDOW_S = 5.0
 
 
 def config(quick: bool) -> dict:
@@ -82,6 +91,11 @@ def config(quick: bool) -> dict:
         "newton_tolerance": 1e-12,
         # Quick mode (tests): the paper's methods only, to keep compilations few.
         "extra_methods": [] if quick else list(EXTRA_METHODS),
+        # The 3D view of the motion, drawn from the saved states of this method's paper run.
+        "motion_method": "lgvi",
+        "motion_snapshots_t": 2.0,  # 2x4 snapshots over [0, 2] s (about one swing)
+        "motion_gif_t": 6.0,
+        "motion_gif_fps": 10,
     }
 
 
@@ -344,7 +358,7 @@ def long_run(model, cfg, out: Path, log, paper: dict) -> dict:
     same = (h == cfg["paper_dt"] and every == cfg["paper_save_every"]
             and n == round(cfg["paper_t_final"] / cfg["paper_dt"]))
     s0 = model.default_state()
-    res = {}
+    res, levels = {}, []
     fig, ax = figure(width=9, height=4)
     for name in VI_METHODS:
         log(f"    long run {name}: {n} steps ...")
@@ -368,16 +382,232 @@ def long_run(model, cfg, out: Path, log, paper: dict) -> dict:
             "steps_per_second": timing["steps_per_second"],
             "newton_mean": float(traj.newton_mean),
         }
-        ax.semilogy(np.asarray(traj.t)[1:], positive(err[1:]), label=LABELS[name],
-                    linewidth=0.5, **style_for(name))
+        t = np.asarray(traj.t)
+        tw, top = envelope(t, err / abs(inv["energy"][0]), LONG_RUN_WINDOWS,
+                           min_span=LONG_RUN_MIN_WINDOW_S)
+        levels.append(positive(top))
+        ax.semilogy(tw, positive(top), linewidth=1.2, drawstyle="steps-mid", **style_for(name),
+                    label=f"{LABELS[name]}; last/first 10%: {res[name]['drift_ratio']:.2f}")
         log(f"    long run {name}: drift ratio {res[name]['drift_ratio']:.2f}, "
             f"{timing['steps_per_second']:.3g} steps/s")
+    span = (t[-1] - t[0]) / len(tw)
     ax.set_xlabel("t [s]")
-    ax.set_ylabel("|H − H₀| [J] (saved states)")
-    ax.set_title(f"Energy error over {n:.0e} steps of h = {h:g} s")
-    ax.legend(fontsize=8)
+    ax.set_ylabel("max |H − H₀|/|H₀| per window")
+    ax.set_title(f"Energy error over {n:.0e} steps of h = {h:g} s: its maximum over windows "
+                 f"of {span:.3g} s ({round(span / h)} steps;\nof the states saved every {every} "
+                 "steps). Flat: bounded, no drift; a drift would rise to the right", fontsize=10)
+    ax.set_xlim(t[0], t[-1])
+    levels = np.concatenate(levels)
+    levels = levels[np.isfinite(levels)]
+    if levels.size:  # a decade either side: a drift would leave the band; room for the legend
+        ax.set_ylim(levels.min() / 10, levels.max() * 30)
+    ax.legend(fontsize=7, loc="upper right", ncol=2)
     save(fig, out / "long_run_energy.png")
     return res
+
+
+# ------------------------------------------------------------------- 3D view of the motion
+
+#: The cart's rectangle, drawn in the plane z = 0 centred on the cart, as fractions of
+#: ``|ρ_c|`` (length along x, width along y). The model's cart is a point mass that
+#: translates without turning: the rectangle's size is for the eye only.
+CART_SIZE = (0.6, 0.4)
+#: Length of the body axes drawn at the bob, as a fraction of ``|ρ_c|``.
+BODY_AXIS_LENGTH = 0.25
+_AXIS_COLOURS = ("tab:red", "tab:green", "tab:blue")
+
+
+def motion_geometry(model: CarPendulum, R, q) -> dict[str, np.ndarray]:
+    """Inertial coordinates (``e3`` down, as in the model) of what the 3D view draws, for
+    attitudes ``R`` of shape ``(..., 3, 3)`` (body to inertial) and cart positions ``q`` of
+    shape ``(..., 2)``:
+
+    * ``pivot`` ``(..., 3)``: the hinge on the cart, ``(x, y, 0)``;
+    * ``bob`` ``(..., 3)``: the pendulum's mass centre, ``pivot + R ρ_c`` (the rod is drawn
+      from ``pivot`` to ``bob``, along the body vector ``ρ_c``; the same point as
+      :meth:`CarPendulum.pendulum_centre`);
+    * ``cart`` ``(..., 4, 3)``: the corners of the cart's rectangle in the plane ``z = 0``
+      (:data:`CART_SIZE`; axis-aligned, since the cart only translates);
+    * ``body_axes`` ``(..., 3, 3)``: row ``i`` is the tip ``bob + s R e_i`` of the body
+      axis ``e_i`` drawn at the bob (``s`` = :data:`BODY_AXIS_LENGTH` ``|ρ_c|``), which
+      shows the spin about the rod.
+    """
+    R = np.asarray(R, dtype=np.float64)
+    q = np.asarray(q, dtype=np.float64)
+    rho = np.asarray(model.rho_c, dtype=np.float64)
+    size = float(np.linalg.norm(rho))
+    pivot = np.concatenate([q, np.zeros_like(q[..., :1])], axis=-1)
+    bob = pivot + np.einsum("...ij,j->...i", R, rho)
+    half = 0.5 * size * np.asarray(CART_SIZE)
+    corners = np.array([[-half[0], -half[1], 0.0], [half[0], -half[1], 0.0],
+                        [half[0], half[1], 0.0], [-half[0], half[1], 0.0]])
+    body_axes = bob[..., None, :] + BODY_AXIS_LENGTH * size * np.swapaxes(R, -1, -2)
+    return {"pivot": pivot, "bob": bob, "cart": pivot[..., None, :] + corners,
+            "body_axes": body_axes}
+
+
+def _figure_3d(nrows: int, ncols: int, width: float, height: float, *, agg: bool = False):
+    """A figure of 3D axes without pyplot (so that a notebook's inline backend is left
+    alone, and nothing is displayed but what the caller shows). ``agg``: on an Agg canvas,
+    whose pixels can be read (otherwise the base canvas, which draws only when saved: an
+    animation's frames are then drawn once each, not twice)."""
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(width, height))
+    if agg:
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+        FigureCanvasAgg(fig)
+    axes = [fig.add_subplot(nrows, ncols, i + 1, projection="3d")
+            for i in range(nrows * ncols)]
+    return fig, axes
+
+
+class MotionView:
+    """The car-pendulum in 3D on one mplot3d ``Axes3D``: the cart's rectangle in the plane
+    ``z = 0``, the rod from the hinge to the mass centre (the bob), the body axes at the bob,
+    the bob's path over the last ``trail`` seconds, its shadow on the plane ``z = 0`` (a
+    dotted vertical line, for depth) and the cart's path so far. ``e3`` points
+    down, as in the model: the z axis is drawn inverted, so the pendulum hangs below the
+    cart's plane. The limits are fixed over all saved states (equal scales), so that frames
+    compare. :meth:`draw` shows saved state ``i`` (the update function of an animation)."""
+
+    def __init__(self, ax, model: CarPendulum, traj, *, trail: float = 0.5,
+                 geometry: dict | None = None, title: bool = True):
+        from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+
+        self.ax, self.title = ax, title
+        self.t = np.asarray(traj.t)
+        self.geom = geometry if geometry is not None else motion_geometry(
+            model, traj.state.R, traj.state.q)
+        dt = float(self.t[1] - self.t[0]) if len(self.t) > 1 else 1.0
+        self.trail = max(1, round(trail / dt))
+        points = np.concatenate([self.geom["cart"].reshape(-1, 3), self.geom["bob"],
+                                 self.geom["body_axes"].reshape(-1, 3)])
+        lo, hi = points.min(axis=0), points.max(axis=0)
+        centre, half = 0.5 * (lo + hi), 0.55 * float(np.max(hi - lo))
+        ax.set_xlim(centre[0] - half, centre[0] + half)
+        ax.set_ylim(centre[1] - half, centre[1] + half)
+        ax.set_zlim(centre[2] + half, centre[2] - half)  # e3 down: larger z drawn lower
+        ax.set_box_aspect((1.0, 1.0, 1.0))
+        ax.set_xlabel("x [m]", fontsize=7, labelpad=-8)
+        ax.set_ylabel("y [m]", fontsize=7, labelpad=-8)
+        ax.set_zlabel("z [m] (down)", fontsize=7, labelpad=-8)
+        ax.tick_params(labelsize=5, pad=-3)
+        ax.locator_params(nbins=4)
+        self.cart = Poly3DCollection([self.geom["cart"][0]], facecolor="tab:gray",
+                                     edgecolor="black", alpha=0.6)
+        ax.add_collection3d(self.cart)
+        (self.cart_path,) = ax.plot([], [], [], color="tab:gray", linewidth=0.8)
+        (self.path,) = ax.plot([], [], [], color="tab:orange", linewidth=0.8, alpha=0.8)
+        (self.rod,) = ax.plot([], [], [], color="black", linewidth=2.0)
+        (self.bob,) = ax.plot([], [], [], "o", color="tab:purple", markersize=7)
+        (self.shadow,) = ax.plot([], [], [], ":o", color="tab:purple", markersize=2,
+                                 linewidth=0.8, alpha=0.6, markevery=[1])
+        (self.pivot,) = ax.plot([], [], [], "o", color="black", markersize=3)
+        self.axes = [ax.plot([], [], [], color=c, linewidth=1.2)[0] for c in _AXIS_COLOURS]
+
+    def artists(self) -> list:
+        return [self.cart, self.cart_path, self.path, self.rod, self.bob, self.shadow,
+                self.pivot, *self.axes]
+
+    def draw(self, i: int) -> list:
+        g = self.geom
+        pivot, bob = g["pivot"][i], g["bob"][i]
+        self.cart.set_verts([g["cart"][i]])
+        self.cart_path.set_data_3d(*g["pivot"][: i + 1].T)
+        self.path.set_data_3d(*g["bob"][max(0, i - self.trail) : i + 1].T)
+        self.rod.set_data_3d(*np.stack([pivot, bob]).T)
+        self.bob.set_data_3d([bob[0]], [bob[1]], [bob[2]])
+        self.shadow.set_data_3d([bob[0], bob[0]], [bob[1], bob[1]], [bob[2], 0.0])
+        self.pivot.set_data_3d([pivot[0]], [pivot[1]], [pivot[2]])
+        for line, tip in zip(self.axes, g["body_axes"][i], strict=True):
+            line.set_data_3d(*np.stack([bob, tip]).T)
+        if self.title:
+            self.ax.set_title(f"t = {self.t[i]:.2f} s", fontsize=8)
+        return self.artists()
+
+
+def motion_frames(traj, t_final: float, frames: int) -> np.ndarray:
+    """Indices of ``frames`` saved states at equally spaced times over ``[0, t_final]``
+    (the nearest saved times; ``t_final`` is clipped to the run's end)."""
+    t = np.asarray(traj.t)
+    wanted = np.linspace(float(t[0]), min(float(t_final), float(t[-1])), frames)
+    return np.abs(t[None, :] - wanted[:, None]).argmin(axis=1)
+
+
+def motion_snapshots(model: CarPendulum, traj, *, t_final: float = 2.0, rows: int = 2,
+                     cols: int = 4, trail: float = 0.5, label: str = ""):
+    """A still sequence of the motion: ``rows × cols`` 3D views at equally spaced times
+    over ``[0, t_final]``, with the same limits in every panel. Returns the figure."""
+    fig, axes = _figure_3d(rows, cols, width=3.2 * cols, height=3.2 * rows)
+    geom = motion_geometry(model, traj.state.R, traj.state.q)
+    for ax, i in zip(axes, motion_frames(traj, t_final, rows * cols), strict=True):
+        MotionView(ax, model, traj, trail=trail, geometry=geom).draw(int(i))
+    fig.suptitle(f"Car-pendulum{label}: the cart (grey) in the plane z = 0, the rod (black) "
+                 f"from the hinge to the mass centre (purple), the body axes e1, e2, e3 (red, "
+                 f"green, blue),\nthe mass centre's path over the last {trail:g} s (orange) "
+                 "and its shadow on the plane (dotted), the cart's path (grey)", fontsize=9)
+    return fig
+
+
+def motion_animation(model: CarPendulum, traj, *, t_final: float = 3.0, frames: int = 30,
+                     trail: float = 0.5, size: float = 4.5, dpi: int = 72,
+                     interval: float | None = None):
+    """A :class:`matplotlib.animation.FuncAnimation` of the motion over ``[0, t_final]``
+    (``frames`` saved states, equally spaced; by default played in real time). In Jupyter:
+    ``IPython.display.HTML(motion_animation(model, traj).to_jshtml())``."""
+    from matplotlib.animation import FuncAnimation
+
+    fig, (ax,) = _figure_3d(1, 1, width=size, height=size)
+    fig.set_dpi(dpi)
+    fig.subplots_adjust(left=0.0, right=0.93, bottom=0.03, top=0.93)  # 3D axes pad enough
+    view = MotionView(ax, model, traj, trail=trail)
+    index = motion_frames(traj, t_final, frames)
+    if interval is None:
+        t = np.asarray(traj.t)
+        interval = 1000.0 * float(t[index[-1]] - t[index[0]]) / max(1, frames - 1)
+    return FuncAnimation(fig, lambda k: view.draw(int(index[k])), frames=len(index),
+                         interval=interval, blit=False)
+
+
+def write_motion_gif(model: CarPendulum, traj, path: Path, *, t_final: float = 6.0,
+                     fps: int = 10, trail: float = 0.5, size: float = 5.0,
+                     dpi: int = 80) -> bool:
+    """The motion over ``[0, t_final]`` in real time as an animated GIF (Pillow, which
+    matplotlib depends on), written atomically; ``False`` (nothing written) without Pillow."""
+    try:
+        from PIL import Image
+    except ImportError:  # pragma: no cover - Pillow is a dependency of matplotlib
+        return False
+    from lgvi_jax._io import atomic_write
+
+    fig, (ax,) = _figure_3d(1, 1, width=size, height=size, agg=True)
+    fig.set_dpi(dpi)
+    fig.subplots_adjust(left=0.0, right=0.93, bottom=0.03, top=0.93)
+    view = MotionView(ax, model, traj, trail=trail)
+    images = []
+    for i in motion_frames(traj, t_final, round(t_final * fps) + 1):
+        view.draw(int(i))
+        fig.canvas.draw()
+        images.append(Image.fromarray(np.asarray(fig.canvas.buffer_rgba())[..., :3]))
+    atomic_write(path, lambda fh: images[0].save(
+        fh, format="GIF", save_all=True, append_images=images[1:],
+        duration=round(1000 / fps), loop=0))
+    return True
+
+
+def motion_figures(model: CarPendulum, traj, cfg, out: Path) -> list[str]:
+    """The 3D view of the paper run (``traj``: the saved states of one method): the still
+    sequence ``motion_snapshots.png`` and the animation ``motion.gif``; the names written."""
+    label = f" ({cfg['motion_method']}, h = {cfg['paper_dt']:g} s)"
+    save(motion_snapshots(model, traj, t_final=cfg["motion_snapshots_t"], label=label),
+         out / "motion_snapshots.png")
+    names = ["motion_snapshots.png"]
+    if write_motion_gif(model, traj, out / "motion.gif", t_final=cfg["motion_gif_t"],
+                        fps=cfg["motion_gif_fps"]):
+        names.append("motion.gif")
+    return names
 
 
 # ------------------------------------------------------------------------ verdicts
@@ -471,6 +701,13 @@ def write_summary(results: dict, out: Path) -> str:
         "![fig11](fig11_orthogonality_error.png) ![momentum](momentum_maps.png)",
         "![sweep](step_sweep.png) ![long run](long_run_energy.png)",
         "",
+        f"The motion in 3D ({cfg['motion_method']}; z points down): snapshots over the "
+        f"first {cfg['motion_snapshots_t']:g} s"
+        + (f", an animation of the first {cfg['motion_gif_t']:g} s in real time"
+           if "motion.gif" in results["motion_figures"] else "") + ".",
+        "",
+        " ".join(f"![{name.split('.')[0]}]({name})" for name in results["motion_figures"]),
+        "",
         "Paper scene, 50 s at h = 5e-3:",
         "",
         "| method | max \\|ΔH\\| [J] | max \\|ΔH/H\\| | max \\|Δp\\| | max \\|ΔL_z\\| "
@@ -523,6 +760,8 @@ def run(out_dir: Path | str, *, quick: bool = False, log: Callable = print) -> d
     log("  paper scene, figures 5-11 ...")
     runs, table = paper_runs(model, cfg, log)
     paper_figures(model, {k: traj for k, (traj, _) in runs.items()}, cfg, out)
+    log("  3D view of the motion ...")
+    motion = motion_figures(model, runs[cfg["motion_method"]][0], cfg, out)
     log("  step-size sweep ...")
     sweep_res = sweep(cfg, out, log)
     log(f"  long run ({cfg['long_n_steps']} steps per VI method) ...")
@@ -534,6 +773,7 @@ def run(out_dir: Path | str, *, quick: bool = False, log: Callable = print) -> d
         "sweep": sweep_res,
         "long_run": long,
         "verdicts": verdicts(table, sweep_res, long),
+        "motion_figures": motion,
         "environment": environment(),
     }
     write_summary(results, out)
