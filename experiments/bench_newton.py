@@ -52,7 +52,7 @@ def time_solves(n: int, solver: Newton, repeats: int = 3) -> dict:
     def run(bs):
         def body(y, b):
             sol = newton_solve(_residual, y, (A, b), solver)
-            return sol.value, sol.num_steps
+            return sol.value, sol.newton_steps
 
         return jax.lax.scan(body, jnp.zeros(n), bs)
 

@@ -7,7 +7,8 @@ has already started or ``LGVI_JAX_XLA_TUNING=0`` (:mod:`lgvi_jax._xla`: rollouts
 trajectory ~3x faster, compiles 20-35 % faster).
 
 Layout: :mod:`lgvi_jax.so3` (Lie-group maths), :mod:`lgvi_jax.linalg` (tiny linear
-systems), :mod:`lgvi_jax.newton` (Newton solver), :mod:`lgvi_jax.models` (models defined by
+systems), :mod:`lgvi_jax.options` (the choices of algorithm, as enums),
+:mod:`lgvi_jax.newton` (Newton solver), :mod:`lgvi_jax.models` (models defined by
 their energies), :mod:`lgvi_jax.integrators` (one file per method),
 :mod:`lgvi_jax.trajectory` (what a rollout returns, result codes), :mod:`lgvi_jax.simulate`
 (rollouts), :mod:`lgvi_jax.diagnostics`, :mod:`lgvi_jax.plotting`, :mod:`lgvi_jax.scenes`,
@@ -53,6 +54,14 @@ from .models import (  # noqa: E402
     RigidState,
 )
 from .newton import Newton, NewtonError, NewtonSolution, newton_solve  # noqa: E402
+from .options import (  # noqa: E402
+    Adjoint,
+    ChordMatrix,
+    HamelMap,
+    JacobianMode,
+    LinearSolver,
+    Variation,
+)
 from .simulate import final_state, simulate, simulate_timed  # noqa: E402
 from .trajectory import RESULTS, IntegrationError, Trajectory  # noqa: E402
 
@@ -66,15 +75,20 @@ __all__ = [
     "AbstractEuclideanModel",
     "AbstractIntegrator",
     "AbstractRigidBodyModel",
+    "Adjoint",
     "CarPendulum",
+    "ChordMatrix",
     "Composition",
     "FreeRigidBody",
     "GalerkinVI",
     "GaussLegendre",
+    "HamelMap",
     "HamelVI",
     "HarmonicOscillator",
     "HeavyTop",
     "IntegrationError",
+    "JacobianMode",
+    "LinearSolver",
     "Newton",
     "NewtonError",
     "NewtonSolution",
@@ -83,6 +97,7 @@ __all__ = [
     "StepInfo",
     "StormerVerlet",
     "Trajectory",
+    "Variation",
     "__version__",
     "compose",
     "diagnostics",

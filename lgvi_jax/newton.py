@@ -53,6 +53,7 @@ the implicit-function-theorem adjoint as in optimistix (``ImplicitAdjoint``).
 from __future__ import annotations
 
 import functools
+import warnings
 import weakref
 from collections.abc import Callable
 from typing import Any
@@ -66,6 +67,7 @@ from jax.flatten_util import ravel_pytree
 
 from . import scalarize as sc
 from .linalg import small_solve
+from .options import Adjoint, JacobianMode, LinearSolver
 from .trajectory import RESULTS
 
 __all__ = ["ChordInverse", "Newton", "NewtonError", "NewtonSolution", "newton_solve"]
@@ -73,9 +75,6 @@ __all__ = ["ChordInverse", "Newton", "NewtonError", "NewtonSolution", "newton_so
 
 class NewtonError(RuntimeError):
     """Raised by ``throw=True`` when a Newton solve (or a step of a rollout) fails."""
-
-
-_JACOBIAN_MODES = ("auto", "forward", "reverse")
 
 
 class Newton(eqx.Module):
@@ -102,9 +101,11 @@ class Newton(eqx.Module):
         unroll: the first ``unroll`` Newton iterations are traced as straight-line code
             (same iterates as the loop); for experiments with XLA scheduling. Plain Newton
             only (ignored with ``chord`` or ``chord_steps``).
-        linear_solver: ``"unrolled"`` (:func:`small_solve`, default) or ``"lu"``
+        linear_solver: a :class:`~lgvi_jax.options.LinearSolver` (or its string):
+            ``"unrolled"`` (:func:`small_solve`, default) or ``"lu"``
             (``jnp.linalg.solve``, LAPACK); see ``experiments/bench_newton.py``.
-        adjoint: ``"implicit"`` (default): derivatives by the implicit function theorem
+        adjoint: an :class:`~lgvi_jax.options.Adjoint` (or its string).
+            ``"implicit"`` (default): derivatives by the implicit function theorem
             (module docstring). ``"unrolled"``: exactly ``max_steps`` plain Newton
             iterations (``chord``, ``chord_steps`` and ``unroll`` are ignored), differentiated
             through by autodiff; the result code says whether the last update met the
@@ -115,8 +116,9 @@ class Newton(eqx.Module):
             structure of arrays under ``vmap``). Same iterates as the array form to the
             order of floating-point sums, same implicit derivatives. Plain Newton or
             ``chord_steps``; no given chord matrix.
-        scalar_jacobian: the autodiff mode of the Jacobian program on scalars:
-            ``"forward"`` (``jacfwd``), ``"reverse"`` (``jacrev``) or ``"auto"`` (default:
+        scalar_jacobian: the autodiff mode of the Jacobian program on scalars, a
+            :class:`~lgvi_jax.options.JacobianMode` (or its string): ``"forward"``
+            (``jacfwd``), ``"reverse"`` (``jacrev``) or ``"auto"`` (default:
             both traced, the one with fewer operations kept, at the price of tracing the
             other: 0.1-0.6 s per compilation). The Lie-group VIs name theirs
             (:class:`~lgvi_jax.integrators.lie.AbstractLieVI`). Same matrix to the order
@@ -128,35 +130,32 @@ class Newton(eqx.Module):
     max_steps: int = eqx.field(static=True, default=20)
     chord: bool = eqx.field(static=True, default=False)
     chord_steps: int = eqx.field(static=True, default=0)
-    linear_solver: str = eqx.field(static=True, default="unrolled")
+    linear_solver: LinearSolver = eqx.field(static=True, default=LinearSolver.UNROLLED,
+                                            converter=LinearSolver.coerce)
     broyden: bool = eqx.field(static=True, default=False)
     unroll: int = eqx.field(static=True, default=0)
-    adjoint: str = eqx.field(static=True, default="implicit")
+    adjoint: Adjoint = eqx.field(static=True, default=Adjoint.IMPLICIT,
+                                 converter=Adjoint.coerce)
     scalar: bool = eqx.field(static=True, default=False)
-    scalar_jacobian: str = eqx.field(static=True, default="auto")
+    scalar_jacobian: JacobianMode = eqx.field(static=True, default=JacobianMode.AUTO,
+                                              converter=JacobianMode.coerce)
 
     @property
     def scalar_compatible(self) -> bool:
         """Whether these settings can run on scalars (``scalar=True``): Newton or
         ``chord_steps``; no ``chord``, ``broyden``, ``unroll`` or unrolled adjoint."""
-        return not (self.chord or self.broyden or self.unroll or self.adjoint != "implicit")
+        return not (self.chord or self.broyden or self.unroll
+                    or self.adjoint != Adjoint.IMPLICIT)
 
     def __check_init__(self):
+        # The converters store the member for a valid string and leave anything else as it
+        # is, refused here with the owner's name.
+        LinearSolver.parse(self.linear_solver, "Newton", "linear_solver")
+        Adjoint.parse(self.adjoint, "Newton", "adjoint")
+        JacobianMode.parse(self.scalar_jacobian, "Newton", "scalar_jacobian")
         if self.scalar and not self.scalar_compatible:
             raise ValueError("Newton: scalar=True supports Newton and chord_steps (no chord, "
                              "broyden, unroll or unrolled adjoint)")
-        if self.scalar_jacobian not in _JACOBIAN_MODES:
-            raise ValueError(f"Newton: scalar_jacobian must be one of {_JACOBIAN_MODES}, got "
-                             f"{self.scalar_jacobian!r}")
-        if self.adjoint not in ("implicit", "unrolled"):
-            raise ValueError(
-                f"Newton: adjoint must be 'implicit' or 'unrolled', got {self.adjoint!r}"
-            )
-        if self.linear_solver not in _LINEAR_SOLVERS:
-            raise ValueError(
-                f"Newton: linear_solver must be one of {sorted(_LINEAR_SOLVERS)}, "
-                f"got {self.linear_solver!r}"
-            )
         for name in ("rtol", "atol"):
             value = getattr(self, name)
             if isinstance(value, jax.core.Tracer):  # a solver rebuilt under jit: checked before
@@ -176,21 +175,29 @@ class NewtonSolution(eqx.Module):
     Attributes:
         value: the last iterate (the root when ``result == RESULTS.successful``).
         result: ``int32`` result code, see :class:`RESULTS`.
-        num_steps: Newton iterations taken.
+        newton_steps: Newton iterations taken (the name of the iteration counts throughout:
+            :class:`~lgvi_jax.integrators.StepInfo`, :class:`~lgvi_jax.Trajectory`).
         residual: max-norm of the residual at the last iterate where it was evaluated.
     """
 
     value: Any
     result: jax.Array
-    num_steps: jax.Array
+    newton_steps: jax.Array
     residual: jax.Array
 
     @property
     def ok(self) -> jax.Array:
         return self.result == RESULTS.successful
 
+    @property
+    def num_steps(self) -> jax.Array:
+        """Deprecated name of :attr:`newton_steps`."""
+        warnings.warn("NewtonSolution.num_steps is deprecated; use newton_steps",
+                      DeprecationWarning, stacklevel=2)
+        return self.newton_steps
 
-_LINEAR_SOLVERS = {"unrolled": small_solve, "lu": jnp.linalg.solve}
+
+_LINEAR_SOLVERS = {LinearSolver.UNROLLED: small_solve, LinearSolver.LU: jnp.linalg.solve}
 
 
 # ---------------------------------------------------------------------------------------
@@ -576,7 +583,7 @@ def newton_solve(
         if jac0 is not None:
             raise ValueError("newton_solve: Newton(scalar=True) takes no chord matrix jac0")
         y, result, k, res = _scalar_core(flat_fn, solver, y0_flat, args)
-    elif solver.adjoint == "unrolled":
+    elif solver.adjoint == Adjoint.UNROLLED:
         y, result, k, res = _iterate_unrolled(
             functools.partial(flat_fn, args=args), y0_flat, solver
         )
@@ -590,7 +597,7 @@ def newton_solve(
                                  f"got {matrix.shape}")
             jac0 = wrap(matrix)
         y, result, k, res = _newton_core(flat_fn, solver, y0_flat, args, jac0)
-    sol = NewtonSolution(value=unravel(y), result=result, num_steps=k, residual=res)
+    sol = NewtonSolution(value=unravel(y), result=result, newton_steps=k, residual=res)
     if throw:
         sol = raise_if_failed(sol)
     return sol
@@ -608,7 +615,7 @@ def raise_if_failed(sol: NewtonSolution) -> NewtonSolution:
     if code != RESULTS.successful:
         raise NewtonError(
             f"Newton solve failed: {RESULTS.describe(code)} "
-            f"(iterations {int(np.max(np.asarray(sol.num_steps)))}, "
+            f"(iterations {int(np.max(np.asarray(sol.newton_steps)))}, "
             f"residual {float(np.max(np.asarray(sol.residual))):.3e})"
         )
     return sol
@@ -665,7 +672,8 @@ def _memo(kind: str, fn, y0, args, build):
     return per_fn[key]
 
 
-def _scalar_jacobian(fn, y0, args, mode: str = "auto") -> sc.ScalarFunction:
+def _scalar_jacobian(fn, y0, args,
+                     mode: JacobianMode | str = JacobianMode.AUTO) -> sc.ScalarFunction:
     """The Jacobian of ``fn`` in ``y`` as a scalar program: forward mode (one tangent per
     unknown), reverse mode (one cotangent per residual) or, with ``mode="auto"``, whichever
     leaves fewer operations after folding and merging. The same matrix up to the order of
@@ -673,9 +681,9 @@ def _scalar_jacobian(fn, y0, args, mode: str = "auto") -> sc.ScalarFunction:
     car-pendulum's ``lgvi``: reverse 1082 against forward 1318 operations; ``hamel``:
     forward 1239 against 1702)."""
     def build():
-        if mode == "forward":
+        if mode == JacobianMode.FORWARD:
             return sc.ScalarFunction(jax.jacfwd(fn), y0, args)
-        if mode == "reverse":
+        if mode == JacobianMode.REVERSE:
             return sc.ScalarFunction(jax.jacrev(fn), y0, args)
         forward = sc.ScalarFunction(jax.jacfwd(fn), y0, args)
         reverse = sc.ScalarFunction(jax.jacrev(fn), y0, args)
@@ -684,7 +692,7 @@ def _scalar_jacobian(fn, y0, args, mode: str = "auto") -> sc.ScalarFunction:
     return _memo(f"jacobian:{mode}", fn, y0, args, build)
 
 
-def _scalar_programs(fn, y0, args, mode: str = "auto"):
+def _scalar_programs(fn, y0, args, mode: JacobianMode | str = JacobianMode.AUTO):
     """The residual and its Jacobian (``mode``: :func:`_scalar_jacobian`) as scalar
     programs (traced once per solve)."""
     residual = _memo("residual", fn, y0, args, lambda: sc.ScalarFunction(fn, y0, args))

@@ -54,7 +54,7 @@ def test_converges_quadratically_to_root():
     np.testing.assert_allclose(np.asarray(sol.value), np.cbrt([2.0, 27.0, 0.5]), rtol=1e-15)
     # From 1 to 3 (root of 27) Newton needs a handful of steps; a linearly convergent method
     # would need dozens at this tolerance.
-    assert int(sol.num_steps) <= 9
+    assert int(sol.newton_steps) <= 9
 
 
 def test_quadratic_convergence_rate():
@@ -88,7 +88,7 @@ def test_unsolvable_reports_max_steps():
     sol = newton_solve(lambda y, a: y**2 + a, jnp.array([0.7]), jnp.array(1.0),
                        Newton(max_steps=25))
     assert int(sol.result) == RESULTS.max_steps_reached
-    assert int(sol.num_steps) == 25
+    assert int(sol.newton_steps) == 25
     assert float(sol.residual) >= 1.0  # |y^2 + 1| >= 1 everywhere
     assert not bool(sol.ok)
 
@@ -100,7 +100,7 @@ def test_nonfinite_is_reported():
     # NaN input
     sol = newton_solve(cubic, jnp.array([jnp.nan]), jnp.array([1.0]))
     assert int(sol.result) == RESULTS.nonfinite
-    assert int(sol.num_steps) == 1
+    assert int(sol.newton_steps) == 1
 
 
 def test_throw_raises_with_numbers():
@@ -132,7 +132,7 @@ def test_chord_variant_converges_linearly():
     chord = newton_solve(cubic, jnp.array([1.2, 1.4]), a, Newton(chord=True, max_steps=100))
     assert int(chord.result) == RESULTS.successful
     np.testing.assert_allclose(np.asarray(chord.value), np.asarray(full.value), rtol=1e-12)
-    assert int(chord.num_steps) > int(full.num_steps)
+    assert int(chord.newton_steps) > int(full.newton_steps)
 
 
 def test_chord_phase_then_newton_fallback():
@@ -153,7 +153,7 @@ def test_chord_phase_then_newton_fallback():
     assert int(full.result) == RESULTS.successful
     assert int(pure_chord.result) != RESULTS.successful
     assert int(mixed.result) == RESULTS.successful
-    assert int(mixed.num_steps) > int(full.num_steps)  # chord iterations are counted too
+    assert int(mixed.newton_steps) > int(full.newton_steps)  # chord iterations are counted too
     np.testing.assert_allclose(np.asarray(mixed.value), np.asarray(full.value), rtol=1e-12)
 
 
@@ -164,7 +164,7 @@ def test_unrolled_iterations_give_the_loop_iterates():
     for unroll in (1, 3, 50):
         sol = newton_solve(cubic, y0, a, Newton(unroll=unroll))
         np.testing.assert_array_equal(np.asarray(sol.value), np.asarray(loop.value))
-        assert int(sol.num_steps) == int(loop.num_steps)
+        assert int(sol.newton_steps) == int(loop.newton_steps)
         assert int(sol.result) == int(loop.result)
 
 
@@ -202,7 +202,7 @@ def test_vmap_equals_loop():
 
     def solve(a):
         sol = newton_solve(cubic, jnp.ones(2), a)
-        return sol.value, sol.num_steps
+        return sol.value, sol.newton_steps
 
     values, steps = jax.vmap(solve)(batch)
     for i, a in enumerate(batch):
@@ -232,7 +232,7 @@ def test_scalar_solve_under_vmap_equals_a_loop(chord_steps):
 
     def solve(y0, a):
         sol = newton_solve(scaled_cubic, y0, (a, s), solver)
-        return sol.value, sol.result, sol.num_steps, sol.residual
+        return sol.value, sol.result, sol.newton_steps, sol.residual
 
     batched = jax.jit(jax.vmap(solve))(y0, a)
     alone = jax.jit(solve)
@@ -274,7 +274,7 @@ def test_given_chord_matrix_reaches_the_same_root():
     # Both stop at an update <= 1e-12 relative; the chord's last update is tightened to
     # 1e-14 of the tolerance's size, so both are at the root to round-off.
     np.testing.assert_allclose(np.asarray(chord.value), np.asarray(full.value), rtol=1e-14)
-    assert int(chord.num_steps) > int(full.num_steps)  # linear, not quadratic
+    assert int(chord.newton_steps) > int(full.newton_steps)  # linear, not quadratic
     bad = newton_solve(cubic, y0, a, Newton(chord_steps=5), jac0=-jnp.eye(2))  # diverges
     assert int(bad.result) == RESULTS.successful
     np.testing.assert_allclose(np.asarray(bad.value), np.asarray(full.value), rtol=1e-14)
@@ -345,10 +345,10 @@ def test_broyden_chord_is_superlinear_and_reaches_the_root():
     for sol in (fixed, broyden):
         assert int(sol.result) == RESULTS.successful
         np.testing.assert_allclose(np.asarray(sol.value), [1.0, 2.0, 3.0], rtol=1e-13)
-    assert int(broyden.num_steps) < int(fixed.num_steps)
+    assert int(broyden.newton_steps) < int(fixed.newton_steps)
     given_inverse = newton_solve(coupled, y0, args, Newton(chord_steps=40, broyden=True),
                                  jac0=ChordInverse(jnp.linalg.inv(J0)))
-    assert int(given_inverse.num_steps) == int(broyden.num_steps)
+    assert int(given_inverse.newton_steps) == int(broyden.newton_steps)
     np.testing.assert_allclose(np.asarray(given_inverse.value), np.asarray(broyden.value),
                                rtol=1e-14)
     jac = jax.jacrev(lambda a: newton_solve(coupled, y0, a, Newton(chord_steps=40,

@@ -266,7 +266,7 @@ def test_newton_solves_well_conditioned_systems(n, seed, scale, start):
     y0 = ystar + start * rng.standard_normal(n)  # within ~1 of the root: Newton's basin
     sol = _solve(A, ystar, y0)
     assert bool(sol.ok), int(sol.result)
-    assert int(sol.num_steps) <= 12  # quadratic convergence from O(1) away
+    assert int(sol.newton_steps) <= 12  # quadratic convergence from O(1) away
     # The last update met |dy_i| <= 1e-12 (1 + |y_i|), and with quadratic convergence the
     # error after it is much smaller; the round-off floor is cond (<= 2.5) x EPS x the
     # residual's scale (|A| |y| ~ 4 |y|). Bound: 10 x (the Newton tolerance + 16 EPS |y*|).

@@ -324,7 +324,7 @@ def test_scalar_newton_equals_the_array_iteration(chord_steps):
                                              Newton(chord_steps=chord_steps, scalar=True)))(
         y0, (M, b))
     assert int(got.result) == RESULTS.successful
-    assert int(got.num_steps) == int(ref.num_steps)
+    assert int(got.newton_steps) == int(ref.newton_steps)
     # both stop at |Δy| <= 1e-12 (1 + |y|): the roots agree to that
     np.testing.assert_allclose(got.value, ref.value, rtol=0, atol=1e-11)
     np.testing.assert_allclose(_system(got.value, (M, b)), 0.0, atol=1e-12)

@@ -2,6 +2,7 @@
 
 from collections.abc import Callable
 
+from ..options import ChordMatrix, HamelMap, Variation
 from .base import AbstractIntegrator, StepInfo
 from .composition import (
     DEFAULT_SCHEMES,
@@ -39,11 +40,11 @@ EUCLIDEAN_METHODS: dict[str, Callable[[], AbstractIntegrator]] = {
 #: accepts ``METHOD@ORDER`` and ``METHOD@SCHEME`` (``lgvi@6``, ``lgvi@kahan-li8``).
 RIGID_METHODS: dict[str, Callable[[], AbstractIntegrator]] = {
     "lgvi": LGVI,
-    "hamel": lambda: HamelVI(map="exp", variation="paper"),
-    "hamel-cayley": lambda: HamelVI(map="cayley", variation="paper"),
-    "hamel-exact": lambda: HamelVI(map="exp", variation="exact"),
+    "hamel": lambda: HamelVI(map=HamelMap.EXP, variation=Variation.PAPER),
+    "hamel-cayley": lambda: HamelVI(map=HamelMap.CAYLEY, variation=Variation.PAPER),
+    "hamel-exact": lambda: HamelVI(map=HamelMap.EXP, variation=Variation.EXACT),
     "rk4": RK4,
-    "hamel-cayley-exact": lambda: HamelVI(map="cayley", variation="exact"),
+    "hamel-cayley-exact": lambda: HamelVI(map=HamelMap.CAYLEY, variation=Variation.EXACT),
     "gl4": lambda: GaussLegendre(stages=2),
     "rkmk4": RKMK4,
 }
@@ -58,14 +59,17 @@ __all__ = [
     "SCHEMES",
     "AbstractIntegrator",
     "AbstractLieVI",
+    "ChordMatrix",
     "Composition",
     "CompositionScheme",
     "GalerkinVI",
     "GaussLegendre",
+    "HamelMap",
     "HamelVI",
     "MethodTable",
     "StepInfo",
     "StormerVerlet",
+    "Variation",
     "compose",
     "parse_method",
     "resolve_method",

@@ -51,7 +51,7 @@ class StepInfo(eqx.Module):
 
     @classmethod
     def from_solution(cls, sol: NewtonSolution) -> StepInfo:
-        return cls(newton_steps=sol.num_steps, result=sol.result, residual=sol.residual)
+        return cls(newton_steps=sol.newton_steps, result=sol.result, residual=sol.residual)
 
 
 class AbstractIntegrator(eqx.Module):

@@ -105,6 +105,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from ..options import ChordMatrix
 from ..trajectory import RESULTS
 from .base import AbstractIntegrator, StepInfo
 
@@ -592,16 +593,17 @@ class MethodTable(Mapping):
                 if make().symmetric and make().order < max(DEFAULT_SCHEMES)]
 
 
-def with_chord_matrix(method: AbstractIntegrator, chord_matrix: str) -> AbstractIntegrator:
-    """``method`` with its Lie-group VI steps using ``chord_matrix`` (``"exact"`` or
-    ``"mass"``, see :class:`~lgvi_jax.integrators.lie.AbstractLieVI`), also inside a
-    composition; any other method is returned unchanged (it has no chord phase)."""
+def with_chord_matrix(method: AbstractIntegrator,
+                      chord_matrix: ChordMatrix | str) -> AbstractIntegrator:
+    """``method`` with its Lie-group VI steps using ``chord_matrix`` (a
+    :class:`~lgvi_jax.options.ChordMatrix` or its string, ``"exact"`` or ``"mass"``, see
+    :class:`~lgvi_jax.integrators.lie.AbstractLieVI`), also inside a composition; any other
+    method is returned unchanged (it has no chord phase)."""
     import dataclasses
 
     from .lie import AbstractLieVI
 
-    if chord_matrix not in ("exact", "mass"):
-        raise ValueError(f"chord_matrix must be 'exact' or 'mass', got {chord_matrix!r}")
+    chord_matrix = ChordMatrix.parse(chord_matrix, "with_chord_matrix", "chord_matrix")
     if isinstance(method, AbstractLieVI):
         return dataclasses.replace(method, chord_matrix=chord_matrix)
     if isinstance(method, Composition) and isinstance(method.base, AbstractLieVI):
@@ -620,7 +622,7 @@ def with_scalar_newton(method: AbstractIntegrator) -> AbstractIntegrator:
     from .lie import AbstractLieVI
 
     def scalar(vi):
-        if vi.chord_matrix != "exact" or not vi.newton.scalar_compatible:
+        if vi.chord_matrix != ChordMatrix.EXACT or not vi.newton.scalar_compatible:
             return vi
         return dataclasses.replace(vi, newton=dataclasses.replace(vi.newton, scalar=True))
 

@@ -71,6 +71,7 @@ from .. import so3
 from ..linalg import ldl_solve, spd_inverse
 from ..models.rigid import AbstractRigidBodyModel, RigidState
 from ..newton import ChordInverse, Newton, newton_solve
+from ..options import ChordMatrix, HamelMap, JacobianMode, Variation
 from ..scalarize import scalarize
 from .base import AbstractIntegrator, StepInfo
 
@@ -183,7 +184,8 @@ class AbstractLieVI(AbstractIntegrator):
     # solutions and robustness as Newton at about half the cost (experiments/
     # bench_throughput.py); Newton() gives plain Newton.
     newton: Newton = Newton(chord_steps=8)
-    #: The chord matrix. ``"exact"`` (default): the Jacobian at the initial guess
+    #: The chord matrix, a :class:`~lgvi_jax.options.ChordMatrix` (or its string).
+    #: ``"exact"`` (default): the Jacobian at the initial guess
     #: (forward-over-reverse, ~7 residuals' cost; 4 iterations per step at h = 5e-3 on the
     #: car-pendulum). ``"mass"``: the continuous Legendre map's matrix ∂(μ, p)/∂(ω, v) at
     #: the current configuration, which costs no derivative of G (the discrete Legendre
@@ -191,12 +193,11 @@ class AbstractLieVI(AbstractIntegrator):
     #: iteration by Broyden's update (``Newton.broyden``): ~6 cheap iterations at
     #: h = 5e-3 (up to ``max(newton.chord_steps, 20)`` before the Newton fallback). The same
     #: solutions to round-off; 1.2-1.7x the batched throughput (``lgvi-jax bench``).
-    chord_matrix: str = eqx.field(static=True, default="exact")
+    chord_matrix: ChordMatrix = eqx.field(static=True, default=ChordMatrix.EXACT,
+                                          converter=ChordMatrix.coerce)
 
     def __check_init__(self):
-        if self.chord_matrix not in ("mass", "exact"):
-            raise ValueError(f"{type(self).__name__}: chord_matrix must be 'mass' or 'exact', "
-                             f"got {self.chord_matrix!r}")
+        ChordMatrix.parse(self.chord_matrix, type(self).__name__, "chord_matrix")
 
     order: ClassVar[int] = 2
     symmetric: ClassVar[bool] = True
@@ -205,7 +206,7 @@ class AbstractLieVI(AbstractIntegrator):
     #: where it is ``"auto"``): the smaller one, measured for every model (free body,
     #: heavy top, car-pendulum) and variant (docs/engine.md); naming it saves tracing the
     #: other at every compilation. ``"auto"``: trace both, keep the smaller.
-    jacobian_mode: ClassVar[str] = "auto"
+    jacobian_mode: ClassVar[JacobianMode] = JacobianMode.AUTO
 
     # --- the method ---------------------------------------------------------------------
     def tau_minus_identity(self, w: jax.Array) -> jax.Array:
@@ -315,7 +316,7 @@ class AbstractLieVI(AbstractIntegrator):
     def _velocities(self, model, state: RigidState):
         """The current velocities ``(ω, v)``, on scalars where the solve is."""
         args = (model, state.R, state.mu, state.q, state.p)
-        if self.newton.scalar and self.chord_matrix == "exact":
+        if self.newton.scalar and self.chord_matrix == ChordMatrix.EXACT:
             return scalarize(self._initial_guess)(*args)
         return self._initial_guess(*args)
 
@@ -331,12 +332,12 @@ class AbstractLieVI(AbstractIntegrator):
         R0, mu0, q0, p0 = state.R, state.mu, state.q, state.p
         h = jnp.asarray(dt, R0.dtype)
         args = (model, R0, mu0, q0, p0, h)
-        fast = self.newton.scalar and self.chord_matrix == "exact"
+        fast = self.newton.scalar and self.chord_matrix == ChordMatrix.EXACT
         if fast:
             if guess is None:
                 guess = self._velocities(model, state)
             solver = self.newton
-            if solver.scalar_jacobian == "auto":
+            if solver.scalar_jacobian == JacobianMode.AUTO:
                 solver = dataclasses.replace(solver, scalar_jacobian=self.jacobian_mode)
             sol = newton_solve(self._residual, guess, args, solver)
             new_state = scalarize(self._finish)(model, R0, q0, p0, h, *sol.value)
@@ -349,7 +350,7 @@ class AbstractLieVI(AbstractIntegrator):
         if guess is None:
             x = mass_inv @ (jnp.concatenate([mu0, p0]) - at_rest)
             guess = (x[:3], x[3:])
-        if self.chord_matrix == "mass":
+        if self.chord_matrix == ChordMatrix.MASS:
             jac0 = ChordInverse(mass_inv)
             solver = dataclasses.replace(solver, chord_steps=max(solver.chord_steps, 20),
                                          broyden=True)
@@ -398,7 +399,7 @@ class LGVI(AbstractLieVI):
     #: ``F`` enters the kinetic energy through all nine entries of ``(F - I)/h``: one
     #: reverse pass per residual beats one tangent per unknown (car-pendulum 1082 against
     #: 1318 operations; heavy top and free body 669 against 924).
-    jacobian_mode: ClassVar[str] = "reverse"
+    jacobian_mode: ClassVar[JacobianMode] = JacobianMode.REVERSE
 
     def tau_minus_identity(self, w):
         return so3.cayley_minus_identity(w)
@@ -415,40 +416,36 @@ class LGVI(AbstractLieVI):
 class HamelVI(AbstractLieVI):
     r"""Hamel variational integrators (``hamel``, ``hamel-cayley``, ``hamel-exact``).
 
-    ``map`` is ``"exp"`` or ``"cayley"`` (:math:`R_{k+1} = R_k\tau(h\xi)`); ``variations``
-    is ``"paper"`` (the paper's eq. 29) or ``"exact"`` (through the inverse right
-    differential of the map). See the module docstring for the discrete Lagrangian and the
-    momentum-map properties of each combination.
+    ``map`` is a :class:`~lgvi_jax.options.HamelMap` (or its string), ``"exp"`` or
+    ``"cayley"`` (:math:`R_{k+1} = R_k\tau(h\xi)`); ``variation`` is a
+    :class:`~lgvi_jax.options.Variation` (or its string), ``"paper"`` (the paper's eq. 29)
+    or ``"exact"`` (through the inverse right differential of the map). See the module
+    docstring for the discrete Lagrangian and the momentum-map properties of each
+    combination.
     """
 
-    map: str = "exp"
-    variation: str = "paper"
+    map: HamelMap = eqx.field(default=HamelMap.EXP, converter=HamelMap.coerce)
+    variation: Variation = eqx.field(default=Variation.PAPER, converter=Variation.coerce)
     #: Forward for every map and variation (car-pendulum ``hamel`` 1239 against 1702
     #: operations, ``hamel-exact`` 1544 against 2016; heavy top ``hamel`` 259 against 476).
-    jacobian_mode: ClassVar[str] = "forward"
+    jacobian_mode: ClassVar[JacobianMode] = JacobianMode.FORWARD
 
     def __check_init__(self):
-        if self.map not in ("exp", "cayley"):
-            raise ValueError(f"HamelVI: map must be 'exp' or 'cayley', got {self.map!r}")
-        if self.variation not in ("paper", "exact"):
-            raise ValueError(
-                f"HamelVI: variation must be 'paper' or 'exact', got {self.variation!r}"
-            )
+        HamelMap.parse(self.map, type(self).__name__, "map")
+        Variation.parse(self.variation, type(self).__name__, "variation")
 
     @property
     def name(self) -> str:
-        base = "hamel" if self.map == "exp" else "hamel-cayley"
-        if self.variation == "exact":
-            return "hamel-exact" if self.map == "exp" else "hamel-cayley-exact"
-        return base
+        base = "hamel" if self.map == HamelMap.EXP else "hamel-cayley"
+        return f"{base}-exact" if self.variation == Variation.EXACT else base
 
     @property
     def symplectic(self) -> bool:
         # Exactly variational only with exact variations (see the module docstring).
-        return self.variation == "exact"
+        return self.variation == Variation.EXACT
 
     def tau_minus_identity(self, w):
-        if self.map == "exp":
+        if self.map == HamelMap.EXP:
             return so3.exp_minus_identity(w)
         return so3.cayley_minus_identity(w)
 
@@ -458,7 +455,7 @@ class HamelVI(AbstractLieVI):
         return h * (T - 0.5 * model.potential(R0, q0) - 0.5 * model.potential(R1, q1))
 
     def variations(self, w):
-        if self.variation == "paper":
+        if self.variation == Variation.PAPER:
             eye = jnp.eye(3, dtype=w.dtype)
             W = 0.5 * so3.hat(w)
             return eye + W, eye - W
@@ -466,6 +463,6 @@ class HamelVI(AbstractLieVI):
         # (J_l(w) = τ(w) J_r(w) = J_r(−w), for exp and Cayley alike): the same matrix
         # without a product with τ(w) (tested against the product), written as the left
         # inverse at w (for exp: one evaluation of the coefficient both share).
-        if self.map == "exp":
+        if self.map == HamelMap.EXP:
             return so3.dexp_inv(w), so3.dexp_left_inv(w)
         return so3.dcayley_inv(w), so3.dcayley_left_inv(w)
