@@ -46,7 +46,8 @@ def test_unknown_methods_are_skipped():
 
 
 def test_runs_without_diffrax(oscillator, monkeypatch):
-    monkeypatch.setattr(wp, "diffrax", None)
+    # `runners.diffrax` is what every part of the study reads (None: not installed).
+    monkeypatch.setattr(wp.runners, "diffrax", None)
     cfg = {**wp.config(True), "euclidean_methods": ["rk4"], "scipy_tols": {"DOP853": [1e-8]}}
     res = wp._sweep_system(oscillator, cfg, log=lambda *_: None)
     families = {r["family"] for r in res["runs"]}
