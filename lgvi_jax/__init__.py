@@ -3,8 +3,8 @@
 Importing the package switches JAX to 64-bit floats (``jax_enable_x64``): long-horizon
 energy and momentum checks are meaningless in float32. It also raises XLA CPU's size limit for
 compiling a ``while`` loop as one function and selects XLA's elemental emitter, unless JAX
-has already started or ``LGVI_JAX_XLA_TUNING=0`` (:mod:`lgvi_jax._xla`: rollouts of one
-trajectory ~3x faster, compiles 20-35 % faster).
+has already started or ``LGVI_JAX_XLA_TUNING=0`` (:mod:`lgvi_jax._xla`: faster rollouts
+and compiles, the same results to rounding; ``docs/process-settings.md``).
 
 Layout: :mod:`lgvi_jax.so3` (Lie-group maths), :mod:`lgvi_jax.linalg` (tiny linear
 systems), :mod:`lgvi_jax.options` (the choices of algorithm, as enums),

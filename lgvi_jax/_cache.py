@@ -2,8 +2,7 @@
 
 A CLI run compiles the same programs as the last run with the same options (a sweep's
 batched rollout, its initial conditions, the rollouts of ``simulate``), and compiling is
-most of a short run's wall clock (a 1024-trajectory car-pendulum sweep: ~6.6 s of XLA
-compilation in a 13.6 s run). :func:`enable` points JAX's persistent cache at a folder, so
+most of a short run's wall clock. :func:`enable` points JAX's persistent cache at a folder, so
 that a repeated run loads the compiled programs instead. Only the command line calls it:
 ``import lgvi_jax`` leaves the process's cache settings alone.
 
@@ -15,7 +14,7 @@ cannot be created leaves the cache off (the run is only slower). The key of an e
 the program, the JAX/XLA versions and the ``XLA_FLAGS``, so a changed setting recompiles.
 
 JAX's cache starts from the lowered program, so a run still pays for tracing the Python
-that builds it (a sweep's batched rollout: 1-2 s). :func:`call` also keeps the **traced**
+that builds it (seconds for a sweep's batched rollout). :func:`call` also keeps the **traced**
 programs (the sweep's rollout and initial conditions, the fit's derivatives) as
 :mod:`jax.export` serialisations in the ``traces`` subfolder, keyed by everything a trace
 depends on: the package's source, the versions of JAX, jaxlib, Equinox and NumPy, the

@@ -8,8 +8,7 @@ runs this file as a script: it imports nothing of this package, only NumPy and m
 
 Nothing depends on the helper: if it was not started, cannot start, fails or takes more
 than :data:`TIMEOUT_S`, :func:`render` draws in this process instead (the same figure). A
-helper that is never asked exits when this process does (end of its input). Measurements:
-CHANGELOG, 2026-12-05 (fifth session).
+helper that is never asked exits when this process does (end of its input).
 """
 
 from __future__ import annotations

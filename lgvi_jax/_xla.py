@@ -3,13 +3,13 @@ gives the measurements behind each).
 
 * **Small while loops compiled whole**: ``xla_cpu_small_while_loop_byte_threshold`` raised
   to :data:`SMALL_LOOP_BYTES`, so that XLA's ``SmallWhileLoopHoistingPass`` compiles a whole
-  rollout as one function instead of dispatching each of its small kernels (one trajectory
-  2.5-3x faster).
+  rollout as one function instead of dispatching each of its small kernels (the dispatch,
+  not the arithmetic, sets the speed of one trajectory).
 * **The elemental emitter** (``--xla_cpu_use_fusion_emitters=false``, for the jaxlib
-  versions that know it, :data:`EMITTER_FLAG_BEFORE`): compiles 20-35 % faster.
+  versions that know it, :data:`EMITTER_FLAG_BEFORE`): shorter compiles.
 * **Wide vectors, loops not unrolled** on CPUs with AVX-512
   (``--xla_cpu_prefer_vector_width=512``, backend option ``xla_cpu_disable_loop_unrolling``):
-  batches compile 35-45 % faster.
+  shorter compiles of batches (LLVM optimising the rollout's many small loops is most of it).
 
 The options only take effect if set before JAX starts its CPU backend, so they are added
 to ``XLA_FLAGS`` at import, when

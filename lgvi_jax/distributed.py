@@ -66,9 +66,8 @@ def jax_heartbeat_timeout(heartbeat_timeout: float) -> int:
     """The heartbeat timeout given to JAX's coordination service for our
     ``heartbeat_timeout``: long enough that the :class:`Watchdog` always ends a process
     first. JAX's clients send a heartbeat every half timeout, so the service may declare a
-    process dead as early as half its timeout after the death (measured here: 6.2-10.6 s for
-    a 10 s timeout, 15-17.5 s for 20 s); half of ``2 t + 20`` is ``t + 10``, against at
-    most ``t + 2`` for the watchdog."""
+    process dead as early as half its timeout after the death (``docs/distributed.md``);
+    half of ``2 t + 20`` is ``t + 10``, against at most ``t + 2`` for the watchdog."""
     return int(2 * heartbeat_timeout + 20)
 
 

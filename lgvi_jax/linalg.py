@@ -87,8 +87,8 @@ def ldl_solve(A: jax.Array, b: jax.Array) -> jax.Array:
     pivoting, unrolled entry by entry over the static size; reads only the lower triangle).
     For programs emitted on scalars (:mod:`lgvi_jax.scalarize`): ~n³/3 multiply-adds
     instead of the ~2n³ of :func:`spd_solve`'s Gauss–Jordan sweep, and structural zeros of
-    ``A`` fold (the car-pendulum's initial guess, mass matrix and solve: 295 -> 193
-    operations). Array code keeps :func:`spd_solve` (a few vector operations)."""
+    ``A`` fold (the car-pendulum's initial guess, mass matrix and solve: 193 operations
+    instead of 295). Array code keeps :func:`spd_solve` (a few vector operations)."""
     n = A.shape[-1]
     if A.shape != (n, n) or b.shape != (n,):
         raise ValueError(f"ldl_solve: expected A (n, n) and b (n,), got {A.shape}, {b.shape}")

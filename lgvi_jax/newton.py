@@ -120,7 +120,7 @@ class Newton(eqx.Module):
             :class:`~lgvi_jax.options.JacobianMode` (or its string): ``"forward"``
             (``jacfwd``), ``"reverse"`` (``jacrev``) or ``"auto"`` (default:
             both traced, the one with fewer operations kept, at the price of tracing the
-            other: 0.1-0.6 s per compilation). The Lie-group VIs name theirs
+            other at every compilation). The Lie-group VIs name theirs
             (:class:`~lgvi_jax.integrators.lie.AbstractLieVI`). Same matrix to the order
             of floating-point sums.
     """
@@ -212,11 +212,9 @@ def _residual_and_jacobian(f, y):
 
 #: The chord iteration's convergence threshold, in units of the tolerance (see make_body).
 _CHORD_TIGHTEN = 1e-2
-#: The same for Broyden's iteration, which converges superlinearly: 0.1 keeps the vertical
-#: angular momentum of the car-pendulum as well conserved as Newton's (1e5 steps at
-#: h = 5e-3 and 0.02, two scenes: 1.5e-13 to 1.4e-11 against 2.2e-13 to 2.1e-11), with
-#: 6 iterations per step at h = 5e-3 against 8 for the fixed chord (1.0: 5.4, but twice
-#: Newton's drift at h = 0.02).
+#: The same for Broyden's iteration, which converges superlinearly: 0.1 keeps the
+#: car-pendulum's vertical angular momentum as well conserved as Newton's, in fewer
+#: iterations than the fixed chord (1.0: twice Newton's drift; docs/benchmarks.md).
 _BROYDEN_TIGHTEN = 0.1
 
 
@@ -823,10 +821,9 @@ def _jnp(v, dtype):
 def _scalar_core(fn, solver, y0, args):
     # Both one trajectory and a batch replay the programs with their shared values
     # materialised (ScalarFunction's batched layout): left to XLA, one trajectory's
-    # fusions recompute them (car-pendulum hamel, `simulate` of 20000 steps: 2.0e5 steps/s
-    # and 9-10 s to compile, materialised 6-7e5 and 5 s). Under vmap the solve is written
-    # on vectors over the batch (custom_vmap, _iterate_scalar's lanes) rather than batched
-    # by JAX, which retraces the loops' bodies until their carries settle.
+    # fusions recompute them (a slower run and a longer compile). Under vmap the solve is
+    # written on vectors over the batch (custom_vmap, _iterate_scalar's lanes) rather than
+    # batched by JAX, which retraces the loops' bodies until their carries settle.
     programs = _scalar_programs(fn, y0, args, solver.scalar_jacobian)
 
     @jax.custom_batching.custom_vmap
@@ -858,7 +855,7 @@ def _scalar_core_jvp(fn, solver, primals, tangents):
     dF_fn = sc.ScalarFunction(dF, y, args, args_dot)
     y_s, a_s, ad_s = sc.split(y), jax.tree.map(sc.split, args), jax.tree.map(sc.split, args_dot)
     # Shared values materialised, as in the solve (left to XLA, the fusions recompute them:
-    # car-pendulum hamel, jax.grad through 10⁴ steps, 40 ms instead of 18). The runtime one
+    # a gradient about twice as slow). The runtime one
     # that materialises them is made from the first input, the solution y: a primal, so
     # that ẏ stays linear in ȧ (transposable for grad).
     J_inv = _scalar_block_inverse(_rows(jac_fn(y_s, a_s, batched=True)))

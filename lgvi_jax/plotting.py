@@ -1,5 +1,5 @@
-"""Plotting helpers (matplotlib, Agg backend, PNG output). pyplot is imported on first use
-(~0.5 s), so that importing the styles costs nothing."""
+"""Plotting helpers (matplotlib, Agg backend, PNG output). pyplot, slow to import, is
+imported on first use, so that importing the styles costs nothing."""
 
 from __future__ import annotations
 

@@ -608,8 +608,8 @@ class ScalarFunction:
 #: A value read by ``n >= 2`` operations is materialised under ``vmap``
 #: (:class:`ScalarFunction`) when ``cost * (n - 1)``, the operations XLA would repeat by
 #: recomputing it in every reader, is at least this (``cost``: its operations, counting a
-#: value read twice twice). Chosen by measurement over the Lie-group VIs of three models, one
-#: trajectory and batches (CHANGELOG, 2026-12-05).
+#: value read twice twice). 40: the fastest of the thresholds scanned over the Lie-group VIs
+#: of three models, one trajectory and batches (docs/engine.md).
 MATERIALIZE_COST = 40
 
 
@@ -724,9 +724,9 @@ def sin_cos(t):
     8e-16 up to 1e7); NaN for a non-finite ``t``.
 
     The batched replay of a scalar program emits its float64 ``sin`` and ``cos`` this
-    way: XLA's CPU sine costs ~9 ns per element, 30 multiply-adds' worth (measured), and
+    way: XLA's CPU sine costs some 30 multiply-adds per element (docs/engine.md), and
     the closed forms of :mod:`lgvi_jax.so3` are evaluated even where their Taylor branch
-    is selected. The car-pendulum's exp-map Hamel steps, batched: 1.5x faster."""
+    is selected."""
     k = lax.round(t * _INV_TWO_PI, lax.RoundingMethod.TO_NEAREST_EVEN)
     r = ((t - k * _TWO_PI_1) - k * _TWO_PI_2) - k * _TWO_PI_3
     x = 0.25 * r
@@ -802,7 +802,7 @@ def _replay_cond(eqn, invals, one):
                 zip(vals, dtypes, strict=True)]
 
     # Every branch and a selection per member, as JAX batches a cond (computing a branch
-    # only where some member takes it: faster batches, longer compiles; CHANGELOG).
+    # only where some member takes it: faster batches, longer compiles; docs/engine.md).
     results = [vectors(run(br)) for br in branches]
     return [jax.lax.select_n(index, *[r[k] for r in results]) for k in range(len(dtypes))]
 

@@ -85,9 +85,9 @@ PARTS = ("throughput", "gradient", "fit", "sweep")
 DEFAULT_PARTS = ("throughput", "gradient", "fit")
 #: Warm repetitions of the end-to-end sweep (``sweep`` part).
 SWEEP_WARM_RUNS = 3
-#: ``--quick``: a smoke test of every part but the fit (whose Jacobian program compiles for
-#: ~8 s), on fewer methods, the default engines only, and the gradient on arrays only (the
-#: scalar engine's gradient compiles for ~20 s).
+#: ``--quick``: a smoke test of every part but the fit (whose Jacobian program is slow to
+#: compile), on fewer methods, the default engines only, and the gradient on arrays only (the
+#: scalar engine's gradient is the slowest program to compile).
 QUICK_METHODS = ("lgvi", "hamel", "lgvi@4")
 QUICK_ENGINES = ("scalar",)
 QUICK_PARTS = ("throughput", "gradient")
@@ -368,7 +368,7 @@ def _long_run_memory(n_steps: int, log) -> dict:
         # The child's own high-water mark: VmHWM of /proc/self/status belongs to the
         # address space the child built after exec. Its ru_maxrss would not do: Linux
         # keeps the maximum across execve, so it starts at the size of the forked
-        # benchmark process (a measured 1 GB whatever the run).
+        # benchmark process, whatever the run.
         script = (
             "import resource, sys; from lgvi_jax.cli import main; "
             "code = main(sys.argv[1:]); "

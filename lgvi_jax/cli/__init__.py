@@ -63,7 +63,7 @@ def run() -> None:
 
 def _exit_now(code: int) -> None:
     """End the process without the interpreter's teardown, which destroys JAX's backend
-    and every compiled program (~0.5 s of a 5 s warm sweep, measured), once the outputs
+    and every compiled program (a noticeable share of a warm sweep), once the outputs
     are flushed; a distributed run (JAX's client initialised: its shutdown barrier and
     the watchdog run at exit) and any doubt take the usual exit."""
     import logging

@@ -55,7 +55,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     scene = get_scene(args.system)
     try:
         # As in `sweep`: the Lie-group VIs solved on scalars (the same solutions to
-        # round-off; one car-pendulum trajectory 7-9x faster, compiled 0.6-0.9 s longer).
+        # round-off; one trajectory several times faster for a longer compile, docs/cli.md).
         method = with_scalar_newton(scene.method(args.method))
     except ValueError as err:
         detail = str(err).removeprefix(f"{scene.name}: ")

@@ -186,13 +186,13 @@ class AbstractLieVI(AbstractIntegrator):
     newton: Newton = Newton(chord_steps=8)
     #: The chord matrix, a :class:`~lgvi_jax.options.ChordMatrix` (or its string).
     #: ``"exact"`` (default): the Jacobian at the initial guess
-    #: (forward-over-reverse, ~7 residuals' cost; 4 iterations per step at h = 5e-3 on the
-    #: car-pendulum). ``"mass"``: the continuous Legendre map's matrix ∂(μ, p)/∂(ω, v) at
-    #: the current configuration, which costs no derivative of G (the discrete Legendre
-    #: map's Jacobian in the velocity unknowns is this matrix + O(h)), improved after every
-    #: iteration by Broyden's update (``Newton.broyden``): ~6 cheap iterations at
-    #: h = 5e-3 (up to ``max(newton.chord_steps, 20)`` before the Newton fallback). The same
-    #: solutions to round-off; 1.2-1.7x the batched throughput (``lgvi-jax bench``).
+    #: (forward-over-reverse, ~7 residuals' cost). ``"mass"``: the continuous Legendre map's
+    #: matrix ∂(μ, p)/∂(ω, v) at the current configuration, which costs no derivative of G
+    #: (the discrete Legendre map's Jacobian in the velocity unknowns is this matrix +
+    #: O(h)), improved after every iteration by Broyden's update (``Newton.broyden``): more
+    #: but cheaper iterations (up to ``max(newton.chord_steps, 20)`` before the Newton
+    #: fallback). The same solutions to round-off; faster batched (``lgvi-jax bench``,
+    #: ``docs/which-method.md``).
     chord_matrix: ChordMatrix = eqx.field(static=True, default=ChordMatrix.EXACT,
                                           converter=ChordMatrix.coerce)
 
@@ -292,13 +292,12 @@ class AbstractLieVI(AbstractIntegrator):
     def step_with(self, model, state: RigidState, dt, solver_state):
         """A step whose Newton solve starts from the polynomial extrapolation of the last
         solutions (:func:`predict`; the current velocities are an O(h) guess, the linear
-        extrapolation O(h²)): car-pendulum chord iterations per step, linear -> quartic
-        extrapolation, h = 5e-3 3 -> 2, 1e-2 3.6 -> 2.4; and no inverse Legendre map.
-        Where the solutions vary too much from step to step (:func:`unresolved`, steps near
-        the stability limit) from the current velocities instead, so that a rollout fails
-        at the same steps as from the velocities (car-pendulum limits ``lgvi`` 0.144 s,
-        ``hamel-exact`` 0.332 s; 0.126 and 0.224 from the extrapolation alone). The
-        solution is the same to the solver's tolerance."""
+        extrapolation O(h²)): fewer Newton iterations per step (docs/engine.md), and no
+        inverse Legendre map. Where the solutions vary too much from step to step
+        (:func:`unresolved`, steps near the stability limit) from the current velocities
+        instead, so that a rollout fails at the same steps as from the velocities (the
+        extrapolation alone shrinks the car-pendulum's stability limits). The solution is
+        the same to the solver's tolerance."""
         history, count = solver_state
         guess = predict(history, count)
         params, static = eqx.partition(model, eqx.is_array)
@@ -427,7 +426,7 @@ class HamelVI(AbstractLieVI):
     map: HamelMap = eqx.field(default=HamelMap.EXP, converter=HamelMap.coerce)
     variation: Variation = eqx.field(default=Variation.PAPER, converter=Variation.coerce)
     #: Forward for every map and variation (car-pendulum ``hamel`` 1239 against 1702
-    #: operations, ``hamel-exact`` 1544 against 2016; heavy top ``hamel`` 259 against 476).
+    #: operations, heavy top ``hamel`` 259 against 476; tests/test_scalarize.py).
     jacobian_mode: ClassVar[JacobianMode] = JacobianMode.FORWARD
 
     def __check_init__(self):

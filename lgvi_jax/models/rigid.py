@@ -219,6 +219,6 @@ class AbstractRigidBodyModel(eqx.Module):
 
 @eqx.filter_jit
 def _momenta(model, R, omega, q, v):
-    """``model.momenta`` compiled as one program: called eagerly (a scene's default state,
-    1.9 s on the car-pendulum), its autodiff ran op by op, each op compiled on its own."""
+    """``model.momenta`` compiled as one program: called eagerly (a scene's default state),
+    its autodiff would run op by op, each op compiled on its own."""
     return model.momenta(R, omega, q, v)

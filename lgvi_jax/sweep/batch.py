@@ -121,8 +121,7 @@ def _sweep_one(model, method, state0, dt, n_steps, sample_every):
     """One trajectory of ``n_steps`` (a run-time value) with running metrics."""
     # On scalars (scalarize.on_scalars): the invariants of a model derived by autodiff (the
     # inverse Legendre map through the kinetic-energy Hessian) are dozens of small array
-    # operations that in a loop cost more than the step (heavy top hamel, metrics every
-    # step, one trajectory: 2.2e5 steps/s on arrays, 2.15e6 on scalars).
+    # operations that in a loop cost more than the step (docs/engine.md).
     on_scalars_ = on_scalars(_diagnostics, model, state0)
 
     def diagnostics(state):
@@ -191,14 +190,13 @@ _RUNNERS: dict[Any, Callable] = {}
 
 #: The most trajectories one device integrates as one vectorised batch; a larger share runs
 #: as a sequence of equal blocks (``lax.map`` over ``vmap``), whose working set stays in
-#: cache. Measured on one core (lgvi, mass chord, 2000 steps): 1.23e6 steps/s for 512 at
-#: once, 8.9e5 for 1024 or 2048 at once, 1.22e6 for 2048 in blocks of 512.
+#: cache. 512: 2048 trajectories in blocks of 512 run as fast as 512, at once they run
+#: slower (docs/engine.md).
 BLOCK = 512
 #: The block size for the steps emitted on scalars (the scalar engine): their hundreds of
-#: live values are each a vector over the block, so the working set grows with it. Of 16,
-#: 32, 64, 128 (and earlier 256, 512), 16 and 32 ran fastest across models and methods,
-#: with the same compile time (CHANGELOG, 2026-12-05; measured on an AVX-512 CPU only);
-#: the array engine has no such preference.
+#: live values are each a vector over the block, so the working set grows with it. 32:
+#: with 16 the fastest of 16-512 across models and methods, compiling as fast
+#: (docs/engine.md; an AVX-512 CPU); the array engine has no such preference.
 SCALAR_BLOCK = 32
 
 
@@ -207,8 +205,8 @@ def _vmap_in_blocks(f, states, block: int):
     vectorised blocks: ``ceil(B / block)`` blocks of equal size, the last padded with copies
     of the first state (computed and dropped), so that the step is compiled once."""
     batch = jax.tree.leaves(states)[0].shape[0]
-    if batch == 1:  # one trajectory: the unbatched program (compiles in 5-6 s instead of
-        # 7.5-8.5 s on scalars, car-pendulum; runs as fast)
+    if batch == 1:  # one trajectory: the unbatched program (compiles faster than a vmap
+        # of one, runs as fast)
         out = f(jax.tree.map(lambda x: x[0], states))
         return jax.tree.map(lambda y: y[None], out)
     if batch <= block:
