@@ -1,7 +1,8 @@
-"""Symmetric compositions (``lgvi_jax.integrators.composition``): the coefficient sets and
-their order conditions, the order on a problem with a known exact flow, the observed orders
-of ``lgvi@4/6/8`` against the independent car-pendulum reference, momentum maps, long-time
-energy, reversibility, warm starts, and the ``METHOD@SPEC`` syntax."""
+"""Symmetric compositions (``lgvi_jax.integrators.composition``, ``.order_conditions``,
+``.schemes``): the coefficient sets and their order conditions, the order on a problem with
+a known exact flow, the observed orders of ``lgvi@4/6/8`` against the independent
+car-pendulum reference, momentum maps, long-time energy, reversibility, warm starts, and
+the ``METHOD@SPEC`` syntax."""
 
 from __future__ import annotations
 
@@ -30,7 +31,7 @@ from lgvi_jax.integrators import (
     compose,
     resolve_method,
 )
-from lgvi_jax.integrators.composition import (
+from lgvi_jax.integrators.order_conditions import (
     composition_order,
     error_constant,
     order_conditions,

@@ -4,23 +4,22 @@ from collections.abc import Callable
 
 from ..options import ChordMatrix, HamelMap, Variation
 from .base import AbstractIntegrator, StepInfo
-from .composition import (
-    DEFAULT_SCHEMES,
-    SCHEMES,
-    Composition,
-    CompositionScheme,
-    MethodTable,
-    compose,
-    parse_method,
-    resolve_method,
-    with_chord_matrix,
-    with_scalar_newton,
-)
+from .composition import Composition
 from .galerkin import GalerkinVI
 from .gauss_legendre import GaussLegendre
 from .lie import LGVI, AbstractLieVI, HamelVI
 from .lie_rk import RKMK4
 from .rk4 import RK4
+from .schemes import (
+    DEFAULT_SCHEMES,
+    SCHEMES,
+    CompositionScheme,
+    MethodTable,
+    compose,
+    parse_method,
+    resolve_method,
+)
+from .solver_settings import with_chord_matrix, with_scalar_newton
 from .verlet import StormerVerlet
 
 #: Methods for models on R^n, by the name the CLI and the experiments use.
