@@ -109,12 +109,15 @@ def _per_member(tree):
     return ident(tree)
 
 
-def _start(model, method, state0, dt) -> rollout.Carry:
-    """The rollout's initial carry, every leaf per member except the step index, which
+def _start(model, method, state0, dt, acc=None) -> tuple[rollout.Carry, Any]:
+    """The rollout's initial carry and the observer's accumulator, every leaf per member
+    (one ``_per_member`` for both: a batch of only unbatched leaves, such as metrics that
+    start as constants, would not reach its batching rule) except the step index, which
     stays shared: the metrics' ``cond`` on it then stays a branch under ``vmap`` (metrics
     every K steps cost 1/K), where a per-member index would turn it into a selection."""
     carry = rollout.start(model, method, state0, dt)
-    return eqx.tree_at(lambda c: c.k, _per_member(carry), carry.k)
+    batched, acc = _per_member((carry, acc))
+    return eqx.tree_at(lambda c: c.k, batched, carry.k), acc
 
 
 def _sweep_one(model, method, state0, dt, n_steps, sample_every):
@@ -160,7 +163,7 @@ def _sweep_one(model, method, state0, dt, n_steps, sample_every):
 
         return jax.lax.cond(sample, update, lambda a: a, acc)
 
-    carry, acc = _start(model, method, state0, dt), _per_member((nan_metrics, zero_metrics))
+    carry, acc = _start(model, method, state0, dt, (nan_metrics, zero_metrics))
     end, (maxima, last) = rollout.advance(model, method, dt, carry, n_steps, observe, acc)
     steps_done = jnp.where(end.failed_step >= 0, end.failed_step + 1, n_steps)
     out = {
@@ -181,7 +184,7 @@ def _sweep_one(model, method, state0, dt, n_steps, sample_every):
 def _final_one(model, method, state0, dt, n_steps, sample_every):
     """One trajectory, no metrics: the final state and the result code (benchmarks)."""
     del sample_every
-    end, _ = rollout.advance(model, method, dt, _start(model, method, state0, dt), n_steps)
+    end, _ = rollout.advance(model, method, dt, _start(model, method, state0, dt)[0], n_steps)
     return {"state": end.state, "result": end.result, "failed_step": end.failed_step}
 
 
