@@ -73,9 +73,9 @@ def run(out: Path, *, quick: bool = False, dt: float = 0.01, steps: int | None =
         repeats: int = 5, log=print) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     n = steps or (1000 if quick else 5000)
-    model = paper_scene()
-    s0 = model.default_state()
-    y_ref = HandReference(model).at([0.0, 1.0])[-1]
+    scene = paper_scene()
+    model, s0 = scene.model, scene.state0
+    y_ref = scene.reference().at([0.0, 1.0])[-1]
     schemes = DEFAULT if quick else tuple(SCHEMES)
 
     methods = {"lgvi": LGVI()}

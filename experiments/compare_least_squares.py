@@ -46,6 +46,8 @@ from typing import Any
 
 import numpy as np
 
+from lgvi_jax._io import atomic_write_text
+
 J_C_TRUE = np.diag([0.03, 0.05, 0.04])
 #: case -> (step h, observed span in s, noise sigma)
 CASES = {"clean-h0.005": (0.005, 5.0, 0.0), "noisy-h0.01": (0.01, 5.0, 1e-3),
@@ -220,13 +222,12 @@ def main(argv=None) -> int:
                 row = {**json.loads(proc.stdout.strip().splitlines()[-1]), "repeat": rep,
                        "load_before": load}
                 rows.append(row)
-                with results.open("a") as f:
-                    f.write(json.dumps(row) + "\n")
+                atomic_write_text(results, "".join(json.dumps(r) + "\n" for r in rows))
                 c, w = row["cold"], row["warm"]
                 log(f"{case} {solver} #{rep}: {w['iterations']} it ({w['stopped']}), cold "
                     f"{c['wall_s']:.2f} s, warm {w['wall_s']:.2f} s, loss "
                     f"{w['loss_final']:.4e}, error {w['rel_error_J_c']:.3e} (load {load:.2f})")
-    (out / "compare_least_squares.md").write_text(table(rows) + "\n")
+    atomic_write_text(out / "compare_least_squares.md", table(rows) + "\n")
     print(table(rows))
     return 0
 

@@ -30,6 +30,14 @@ def check_positive(name: str, value: Any, owner: str) -> None:
         raise ValueError(f"{owner}: {name} must be finite and > 0, got {shown!r}")
 
 
+def check_finite(name: str, value: Any, owner: str) -> None:
+    """Raise ``ValueError`` unless every entry of ``value`` is finite."""
+    if is_concrete(value) and not np.all(np.isfinite(np.asarray(value))):
+        arr = np.asarray(value)
+        shown = arr.tolist() if arr.ndim else arr.item()
+        raise ValueError(f"{owner}: {name} must be finite, got {shown!r}")
+
+
 def check_float64_finite(name: str, tree: Any, owner: str) -> None:
     """Raise ``ValueError`` unless every floating leaf of ``tree`` is finite float64."""
     if not is_concrete(tree):

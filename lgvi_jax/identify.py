@@ -1,32 +1,52 @@
-r"""Identification of the car-pendulum's parameters from observed trajectories.
+r"""Identification of a rigid-body model's parameters from observed trajectories.
+
+Any :class:`~lgvi_jax.models.AbstractRigidBodyModel` (the car-pendulum, the heavy top, the
+free rigid body, ...): what is fitted is the model's own parameters and the problem's
+initial velocities; the model holds no initial state.
 
 **Data.** Observations :math:`(t_i, R_i^{obs}, q_i^{obs})`, ``i = 1..n``, at times on the
 integrator's step grid (:math:`t_i = k_i h`), and the initial state
-``(R0, omega0, q0, v0)`` (:class:`Observations`, :func:`check_observations`).
+``(R0, omega0, q0, v0)`` (:class:`Observations`, :func:`check_observations`). The
+Euclidean coordinates ``q`` (and ``q0``, ``v0``) are observed only for a model with
+``dof > 0`` (the car-pendulum's cart); a ``dof = 0`` model (heavy top, free body) is
+observed by its attitudes alone.
 
 **Model.** A rollout of a variational integrator (:func:`~lgvi_jax.simulate.simulate`,
-saving every :math:`\gcd(k_i)` steps) from the initial state gives :math:`R_i(\theta),
-q_i(\theta)`. The fitted quantities are a subset of ``J, rho_c, m, M, g, omega0, v0``
-(:data:`FITTABLE`), each through an unconstrained parameter (:func:`to_unconstrained`):
+saving every :math:`\gcd(k_i)` steps) of the model :math:`\mathcal M(\theta)` from the
+state :math:`\mathcal M(\theta)`.``state_from_velocities(R0, omega0, q0, v0)`` gives
+:math:`R_i(\theta), q_i(\theta)`. The fitted quantities (:func:`fittable`) are those of
+``J, rho_c, m, M, g`` that are fields of the model, and the initial velocities
+``omega0`` and, when ``dof > 0``, ``v0`` (part of the problem's initial state; ``R0`` and
+``q0`` are the observed ones). Each goes through an unconstrained parameter
+(:func:`to_unconstrained`); :func:`model_and_state` builds ``(model, state0)`` from them:
 
-* ``J``: six log-Cholesky coordinates of the inertia **about the mass centre**
-  :math:`J_c` (:mod:`lgvi_jax.inertia`); the model's inertia about the pivot is
+* ``J``: six log-Cholesky coordinates (:mod:`lgvi_jax.inertia`) of the inertia **about
+  the mass centre** :math:`J_c` when the model has a mass ``m`` and a mass-centre offset
+  ``rho_c`` (car-pendulum, heavy top), whose inertia about the pivot is then
   :math:`J = J_c + m(|\rho_c|^2 I - \rho_c\rho_c^\top)` with the current ``m`` and
-  ``rho_c``. Every iterate is a physical inertia (positive definite, triangle
+  ``rho_c``; of ``J`` itself otherwise (the free body, whose ``J`` is about its mass
+  centre). Every iterate is a physical inertia (positive definite, triangle
   inequalities), whatever the start. When ``J`` is not fitted, ``J_c`` is held fixed;
 * ``m``, ``M``: their logarithms (positive); ``g``, ``rho_c``, ``omega0``, ``v0``: as they
   are.
 
 **Loss.** The mean over observations of
 
-.. math::  \ell_i = \tfrac15\left(\tfrac12\|R_i(\theta) - R_i^{obs}\|_F^2 + |q_i(\theta) -
-    q_i^{obs}|^2\right),
+.. math::  \ell_i = \tfrac{1}{3 + d}\left(\tfrac12\|R_i(\theta) - R_i^{obs}\|_F^2 +
+    |q_i(\theta) - q_i^{obs}|^2\right), \qquad d = \text{dof},
 
 the mean squared error per observed degree of freedom (3 for the attitude: for
 :math:`R^{obs} = R\exp(\hat\xi)`, :math:`\tfrac12\|R - R^{obs}\|_F^2 = |\xi|^2 + O(|\xi|^4)`;
-2 for the cart). It is the Gaussian negative log-likelihood for isotropic noise of equal
-size on attitude and position, up to constants, so its minimiser is the maximum-likelihood
-estimate and its value at the truth is about the noise variance.
+``d`` for the Euclidean part, 2 for the cart, so 1/5 for the car-pendulum). It is the
+Gaussian negative log-likelihood for isotropic noise of equal size on attitude and
+position, up to constants, so its minimiser is the maximum-likelihood estimate and its
+value at the truth is about the noise variance.
+
+**Identifiability.** A free body's attitudes determine its inertia only up to a positive
+factor: Euler's equation :math:`J\dot\omega = J\omega\times\omega` is unchanged by
+:math:`J \to cJ`, so the loss is flat along that direction (Levenberg–Marquardt's damping
+keeps its steps finite; the ratios :math:`J/\operatorname{tr}J` are what the data fix).
+Gravity breaks the scaling for the heavy top and the car-pendulum.
 
 **Gradients.** Reverse mode through the rollout; every Newton solve is differentiated by
 the implicit function theorem (:mod:`lgvi_jax.newton`), never by unrolling, and
@@ -36,7 +56,7 @@ the implicit function theorem (:mod:`lgvi_jax.newton`), never by unrolling, and
 forward-mode Jacobians (:class:`_LevenbergMarquardt`; Moré 1978); ``"lbfgs"``: L-BFGS
 (optax's memory, SciPy's strong-Wolfe line search; Nocedal & Wright, *Numerical
 Optimization*, 2nd ed., ch. 6–7); ``"adam"`` (optax; Kingma & Ba, 2015). The loss is a
-small-residual nonlinear least-squares problem in 6–20 unknowns, where Gauss–Newton
+small-residual nonlinear least-squares problem in 3–20 unknowns, where Gauss–Newton
 converges about quadratically, quasi-Newton superlinearly and Adam only linearly
 (``lgvi_jax/studies/identify_inertia.py`` measures them). The first two run their iteration on
 the host around one compiled program each (the loss and gradient, or the residuals and
@@ -71,37 +91,83 @@ import scipy.optimize
 from . import _cache, so3
 from .inertia import centroidal_inertia, inertia_from_params, params_from_inertia, pivot_inertia
 from .integrators import RIGID_METHODS, AbstractIntegrator
-from .models import CarPendulum
+from .models import AbstractRigidBodyModel, CarPendulum, RigidState
 from .progress import Progress
 from .simulate import simulate
 
 __all__ = [
     "FITTABLE",
+    "MODEL_PARAMETERS",
     "FitResult",
     "Observations",
     "check_observations",
     "fit",
+    "fittable",
     "from_unconstrained",
     "load_observations",
     "make_loss",
+    "model_and_state",
     "observe",
     "to_unconstrained",
 ]
 
-#: Quantities that :func:`fit` can estimate.
+#: The model parameters that :func:`fit` can estimate, where they are fields of the model.
+MODEL_PARAMETERS = ("J", "rho_c", "m", "M", "g")
+#: Quantities that :func:`fit` can estimate for the car-pendulum (``fittable(CarPendulum())``;
+#: other models: :func:`fittable`).
 FITTABLE = ("J", "rho_c", "m", "M", "g", "omega0", "v0")
 OPTIMIZERS = ("lbfgs", "adam", "gauss-newton")
 #: Default horizon stages of :func:`fit`, as fractions of the observed time span.
 HORIZONS = (0.125, 0.25, 0.5, 1.0)
-_SHAPES = {"t": None, "R": (3, 3), "q": (2,), "R0": (3, 3), "omega0": (3,), "q0": (2,),
-           "v0": (2,)}
 SO3_ATOL = 1e-6  # observed attitudes must be rotations to this accuracy (‖RᵀR − I‖_F)
+#: Keys of the observations that only a model with Euclidean coordinates (dof > 0) has.
+_EUCLIDEAN_KEYS = ("q", "q0", "v0")
+
+
+def _check_model(model: Any, who: str = "fit") -> AbstractRigidBodyModel:
+    if not isinstance(model, AbstractRigidBodyModel):
+        raise ValueError(f"{who}: the model must be a rigid-body model "
+                         f"(AbstractRigidBodyModel), got {type(model).__name__}")
+    return model
+
+
+def _field_names(model: AbstractRigidBodyModel) -> set[str]:
+    return {f.name for f in dataclasses.fields(model)}
+
+
+def fittable(model: AbstractRigidBodyModel) -> tuple[str, ...]:
+    """The quantities :func:`fit` can estimate for ``model``: its parameter fields among
+    :data:`MODEL_PARAMETERS` (in that order), then the initial velocities ``omega0`` and,
+    when ``model.dof > 0``, ``v0``. ``CarPendulum``: :data:`FITTABLE`; ``HeavyTop``:
+    ``J, rho_c, m, g, omega0``; ``FreeRigidBody``: ``J, omega0``."""
+    fields = _field_names(_check_model(model, "fittable"))
+    names = [name for name in MODEL_PARAMETERS if name in fields]
+    names.append("omega0")
+    if model.dof:
+        names.append("v0")
+    return tuple(names)
+
+
+def _about_mass_centre(model: AbstractRigidBodyModel) -> bool:
+    """Whether ``J`` is fitted as the inertia about the mass centre plus the parallel-axis
+    term (the model has ``m`` and ``rho_c``), rather than as itself."""
+    return {"m", "rho_c"} <= _field_names(model)
+
+
+def _centroidal(model: AbstractRigidBodyModel) -> jax.Array:
+    """The model's inertia about its mass centre (its ``J`` when it has no ``m``, ``rho_c``:
+    the free body's ``J`` is about its mass centre)."""
+    if _about_mass_centre(model):
+        return centroidal_inertia(model.J, model.m, model.rho_c)
+    return jnp.asarray(model.J, jnp.float64)
 
 
 class Observations(eqx.Module):
-    """Observed car-pendulum trajectory: times ``t`` (n,), attitudes ``R`` (n, 3, 3), cart
-    positions ``q`` (n, 2), and the initial state ``R0`` (3, 3), ``omega0`` (3,), ``q0``
-    (2,), ``v0`` (2,) at ``t = 0``. Build with :func:`check_observations`."""
+    """Observed rigid-body trajectory: times ``t`` (n,), attitudes ``R`` (n, 3, 3),
+    Euclidean coordinates ``q`` (n, dof), and the initial state ``R0`` (3, 3), ``omega0``
+    (3,), ``q0`` (dof,), ``v0`` (dof,) at ``t = 0`` (for the car-pendulum dof = 2: the cart;
+    for a model without Euclidean coordinates ``q``, ``q0``, ``v0`` are empty). Build with
+    :func:`check_observations`."""
 
     t: jax.Array
     R: jax.Array
@@ -111,34 +177,79 @@ class Observations(eqx.Module):
     q0: jax.Array
     v0: jax.Array
 
+    @property
+    def dof(self) -> int:
+        """The number of observed Euclidean coordinates."""
+        return int(jnp.shape(self.q0)[-1])
 
-def check_observations(data: Mapping[str, Any], dt: float, *,
-                       source: str = "observations") -> Observations:
+
+def _shapes(dof: int) -> dict[str, tuple[int, ...] | None]:
+    """The observation keys and shapes for a model with ``dof`` Euclidean coordinates
+    (``None``: the times; ``R`` and ``q`` with a leading axis of observations)."""
+    shapes: dict[str, tuple[int, ...] | None] = {"t": None, "R": (3, 3)}
+    if dof:
+        shapes["q"] = (dof,)
+    shapes.update(R0=(3, 3), omega0=(3,))
+    if dof:
+        shapes.update(q0=(dof,), v0=(dof,))
+    return shapes
+
+
+def _format_keys(dof: int) -> str:
+    """E.g. ``t (n,), R (n,3,3), q (n,2), R0 (3,3), omega0 (3,), q0 (2,), v0 (2,)``."""
+    def shape(key, s):
+        if s is None:
+            return "(n,)"
+        dims = ",".join(map(str, s))
+        if key in ("R", "q"):
+            return f"(n,{dims})"
+        return f"({dims},)" if len(s) == 1 else f"({dims})"
+
+    return ", ".join(f"{k} {shape(k, s)}" for k, s in _shapes(dof).items())
+
+
+def check_observations(data: Mapping[str, Any], dt: float, *, source: str = "observations",
+                       dof: int = 2) -> Observations:
     """Validate observation arrays and return :class:`Observations`.
 
-    ``data`` maps ``t, R, q, R0, omega0, q0, v0`` to arrays. If the four initial-state keys
-    are all missing but ``omega`` and ``v`` (per-observation velocities, as written by
-    ``lgvi-jax simulate car-pendulum``) are present and ``t[0] = 0``, the initial state is
-    the first row. Refused with a ``ValueError`` naming the key: a missing key, a wrong
-    shape, a non-finite value, times that are not increasing, negative, or not multiples
-    of ``dt`` (to ``1e-9`` relative), no observation after ``t = 0``, and an ``R`` or
-    ``R0`` not in SO(3) (``‖RᵀR − I‖_F <= 1e-6``, ``det R > 0``).
+    ``data`` maps ``t, R, R0, omega0`` and, for a model with ``dof > 0`` Euclidean
+    coordinates (default 2: the car-pendulum), ``q, q0, v0`` to arrays; for ``dof = 0``
+    (heavy top, free body) the keys ``q, q0, v0`` must be absent. If the initial-state
+    keys are all missing but ``omega`` (and ``v`` when ``dof > 0``), per-observation
+    velocities as written by ``lgvi-jax simulate``, are present and ``t[0] = 0``, the
+    initial state is the first row. Refused with a ``ValueError`` naming the key: a
+    missing key, an extra Euclidean key for ``dof = 0``, a wrong shape, a non-finite value,
+    times that are not increasing, negative, or not multiples of ``dt`` (to ``1e-9``
+    relative), no observation after ``t = 0``, and an ``R`` or ``R0`` not in SO(3)
+    (``‖RᵀR − I‖_F <= 1e-6``, ``det R > 0``).
     """
     if not (isinstance(dt, (int, float, np.floating)) and math.isfinite(dt) and dt > 0):
         raise ValueError(f"dt must be a finite number > 0, got {dt!r}")
+    if isinstance(dof, bool) or not isinstance(dof, (int, np.integer)) or dof < 0:
+        raise ValueError(f"dof must be an integer >= 0, got {dof!r}")
+    dof = int(dof)
+    shapes = _shapes(dof)
     arrays = {k: np.asarray(v) for k, v in data.items()}
-    initial = ("R0", "omega0", "q0", "v0")
-    if all(k not in arrays for k in initial) and {"omega", "v", "t", "R", "q"} <= set(arrays):
+    if dof == 0:
+        extra = [k for k in _EUCLIDEAN_KEYS if k in arrays]
+        if extra:
+            raise ValueError(f"{source}: unexpected key(s) {', '.join(extra)}: this system has "
+                             "no Euclidean coordinates (dof = 0) and is observed by its "
+                             f"attitudes alone; need {_format_keys(0)}")
+    initial = [k for k in ("R0", "omega0", "q0", "v0") if k in shapes]
+    per_row = {"t", "R", "omega"} | ({"q", "v"} if dof else set())
+    if all(k not in arrays for k in initial) and per_row <= set(arrays):
         t = np.asarray(arrays["t"], dtype=np.float64)
         if t.ndim == 1 and t.size and t[0] == 0.0:
-            arrays.update(R0=arrays["R"][0], omega0=arrays["omega"][0], q0=arrays["q"][0],
-                          v0=arrays["v"][0])
-    missing = [k for k in _SHAPES if k not in arrays]
+            arrays.update(R0=arrays["R"][0], omega0=arrays["omega"][0])
+            if dof:
+                arrays.update(q0=arrays["q"][0], v0=arrays["v"][0])
+    missing = [k for k in shapes if k not in arrays]
     if missing:
-        raise ValueError(f"{source}: missing key(s) {', '.join(missing)}; need t (n,), "
-                         "R (n,3,3), q (n,2), R0 (3,3), omega0 (3,), q0 (2,), v0 (2,)")
+        raise ValueError(f"{source}: missing key(s) {', '.join(missing)}; need "
+                         f"{_format_keys(dof)}")
     out = {}
-    for key in _SHAPES:
+    for key in shapes:
         arr = arrays[key]
         if not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
             raise ValueError(f"{source}: {key} must hold numbers, got dtype {arr.dtype}")
@@ -146,7 +257,7 @@ def check_observations(data: Mapping[str, Any], dt: float, *,
     n = out["t"].shape[0] if out["t"].ndim == 1 else -1
     if out["t"].ndim != 1 or n < 1:
         raise ValueError(f"{source}: t must have shape (n,) with n >= 1, got {out['t'].shape}")
-    for key, shape in _SHAPES.items():
+    for key, shape in shapes.items():
         if shape is None:
             continue
         expected = (n, *shape) if key in ("R", "q") else shape
@@ -181,11 +292,14 @@ def check_observations(data: Mapping[str, Any], dt: float, *,
                              f"{err[i]:.3e}, det = {det[i]:.6g} (tolerance {SO3_ATOL:g})")
     # Within tolerance: project the initial attitude onto SO(3) exactly, for the model.
     out["R0"] = np.asarray(so3.project_to_so3(jnp.asarray(out["R0"])))
+    if not dof:
+        out.update(q=np.zeros((n, 0)), q0=np.zeros(0), v0=np.zeros(0))
     return Observations(**{k: jnp.asarray(v) for k, v in out.items()})
 
 
-def load_observations(path, dt: float) -> Observations:
-    """Read and validate an ``.npz`` of observations (:func:`check_observations`)."""
+def load_observations(path, dt: float, *, dof: int = 2) -> Observations:
+    """Read and validate an ``.npz`` of observations (:func:`check_observations`) for a
+    model with ``dof`` Euclidean coordinates (default 2: the car-pendulum)."""
     from ._io import read_npz
 
     try:
@@ -193,32 +307,121 @@ def load_observations(path, dt: float) -> Observations:
     except OSError as err:
         raise ValueError(f"{path}: cannot read observations: {err.strerror or err}") from None
     except ValueError as err:
+        keys = ", ".join(_shapes(dof))
         raise ValueError(f"{path}: cannot read observations: the file {err} (expected an "
-                         ".npz with t, R, q, R0, omega0, q0, v0)") from None
-    return check_observations(arrays, dt, source=str(path))
+                         f".npz with {keys})") from None
+    return check_observations(arrays, dt, source=str(path), dof=dof)
 
 
-def observe(model: CarPendulum, times: Sequence[float], *, noise: float = 0.0,
-            seed: int = 0) -> dict[str, np.ndarray]:
-    """Synthetic observations from the independent reference
-    (:class:`~lgvi_jax.reference.HandReference`: hand-derived equations, SciPy DOP853 at
-    ``1e-13``) at ``times``: ``R_obs = R exp(hat(σ ξ))``, ``q_obs = q + σ ζ`` with ``ξ, ζ``
-    standard normal (``σ = noise``), so noisy attitudes stay in SO(3). Returns the arrays
-    of the ``OBS.npz`` format (the initial state exact, from the model)."""
-    from .reference import HandReference
+def observe(model: AbstractRigidBodyModel, times: Sequence[float], *,
+            state: RigidState | None = None, noise: float = 0.0, seed: int = 0,
+            method: str | AbstractIntegrator | None = None,
+            dt: float | None = None) -> dict[str, np.ndarray]:
+    """Synthetic observations of ``model`` from ``state`` (default
+    ``model.default_state()``) at ``times`` (increasing, the first >= 0), in the
+    ``OBS.npz`` format: ``t, R, R0, omega0`` and, when ``model.dof > 0``, ``q, q0, v0``
+    (the initial state exact, its velocities from ``state``'s momenta).
 
-    ref = HandReference(model)
-    states = ref.at(np.asarray(times, dtype=np.float64))
-    R = states[:, :9].reshape(-1, 3, 3)
-    q = states[:, 12:14].copy()
+    The trajectory: with ``method = None``, an integrator independent of the library's:
+    for the car-pendulum the hand-derived equations of
+    :class:`~lgvi_jax.reference.HandReference`, for any other rigid-body model the model's
+    continuous equations
+    (:meth:`~lgvi_jax.models.AbstractRigidBodyModel.vector_field`, ``R`` as 9 numbers),
+    both by SciPy's DOP853 at ``rtol = atol = 1e-13``, integrated from one time to the
+    next (no interpolation). With ``method`` (an integrator or its name) and ``dt``: that
+    integrator's own rollout at step ``dt`` (every time a multiple of ``dt``), so that
+    :func:`fit` with the same method and step has the truth as an exact zero of its loss.
+
+    Noise: ``R_obs = R exp(hat(σ ξ))``, ``q_obs = q + σ ζ`` with ``ξ, ζ`` standard normal
+    (``σ = noise``), so noisy attitudes stay in SO(3)."""
+    _check_model(model, "observe")
+    times = np.asarray(times, dtype=np.float64)
+    if times.ndim != 1 or times.size == 0 or times[0] < 0 or np.any(np.diff(times) <= 0):
+        raise ValueError("observe: times must be a non-empty, increasing 1-D array starting "
+                         f"at t >= 0, got {times!r}")
+    if state is None:  # the model's defaults, the initial velocities exactly as given
+        state = model.default_state()
+        omega0, v0 = (np.asarray(x) for x in _initial_velocities(model, None, None))
+    else:
+        omega0, v0 = (np.asarray(x) for x in model.velocities(state.R, state.mu, state.q,
+                                                              state.p))
+    R0, q0 = np.asarray(state.R), np.asarray(state.q)
+    if method is not None:
+        if dt is None:
+            raise ValueError("observe: a method needs its step dt")
+        R, q = _rollout_at(model, _method(method), state, times, dt)
+    elif dt is not None:
+        raise ValueError("observe: dt is the step of a given method; without a method the "
+                         "reference integrator chooses its own steps")
+    elif isinstance(model, CarPendulum):
+        R, q = _hand_reference_at(model, R0, omega0, q0, v0, times)
+    else:
+        R, q = _vector_field_at(model, state, times)
     if noise:
         rng = np.random.default_rng(seed)
         xi = noise * rng.standard_normal((len(R), 3))
         R = np.asarray(R @ np.asarray(jax.vmap(so3.exp)(jnp.asarray(xi))))
-        q = q + noise * rng.standard_normal(q.shape)
-    return {"t": np.asarray(times, dtype=np.float64), "R": R, "q": q,
-            "R0": np.asarray(model.R0), "omega0": np.asarray(model.omega0),
-            "q0": np.asarray(model.q0), "v0": np.asarray(model.v0)}
+        if model.dof:
+            q = q + noise * rng.standard_normal(q.shape)
+    out = {"t": times, "R": R}
+    if model.dof:
+        out["q"] = q
+    out.update(R0=R0, omega0=omega0)
+    if model.dof:
+        out.update(q0=q0, v0=v0)
+    return out
+
+
+def _hand_reference_at(model, R0, omega0, q0, v0, times):
+    """The car-pendulum's hand-derived reference (:mod:`lgvi_jax.reference`) from the
+    given initial configuration and velocities."""
+    from .reference import HandReference
+
+    ref = HandReference(model, R0=R0, omega0=omega0, q0=q0, v0=v0)
+    states = ref.at(times)
+    return states[:, :9].reshape(-1, 3, 3), states[:, 12:14].copy()
+
+
+def _vector_field_at(model, state, times):
+    """DOP853 at 1e-13 on the model's continuous equations, step by step between the
+    requested times (every returned state an accepted step, as HandReference.at)."""
+    from scipy.integrate import solve_ivp
+
+    dof = model.dof
+    y0 = np.concatenate([np.ravel(np.asarray(state.R)), np.asarray(state.mu),
+                         np.asarray(state.q), np.asarray(state.p)]).astype(np.float64)
+
+    @jax.jit
+    def rhs(y):
+        s = RigidState(R=y[:9].reshape(3, 3), mu=y[9:12], q=y[12:12 + dof], p=y[12 + dof:])
+        d = model.vector_field(s)
+        return jnp.concatenate([d.R.ravel(), d.mu, d.q, d.p])
+
+    out = np.empty((times.size, y0.size))
+    y, t = y0, 0.0
+    for i, t_next in enumerate(times):
+        if t_next > t:
+            sol = solve_ivp(lambda _t, x: np.asarray(rhs(x)), (t, t_next), y,
+                            method="DOP853", rtol=1e-13, atol=1e-13)
+            if not sol.success:
+                raise RuntimeError(f"observe: DOP853 failed: {sol.message}")
+            y, t = sol.y[:, -1], t_next
+        out[i] = y
+    return out[:, :9].reshape(-1, 3, 3), out[:, 12:12 + dof].copy()
+
+
+def _rollout_at(model, method, state, times, dt):
+    """The states of ``method``'s rollout at step ``dt`` at ``times`` (multiples of dt)."""
+    k = times / dt
+    if np.any(np.abs(k - np.round(k)) > 1e-9 * np.maximum(1.0, k)):
+        raise ValueError(f"observe: every time must be a multiple of dt = {dt:g}")
+    k = np.round(k).astype(np.int64)
+    n_steps = int(k[-1])
+    if n_steps < 1:
+        raise ValueError("observe: need a time after t = 0")
+    traj = simulate(model, method, state, dt, n_steps, throw=True)
+    R, q = np.asarray(traj.state.R), np.asarray(traj.state.q)
+    return R[k], q[k]
 
 
 # ---------------------------------------------------------------------------------------
@@ -226,57 +429,110 @@ def observe(model: CarPendulum, times: Sequence[float], *, noise: float = 0.0,
 # ---------------------------------------------------------------------------------------
 
 
-def _check_names(names: Sequence[str]) -> tuple[str, ...]:
+def _check_names(names: Sequence[str], model: AbstractRigidBodyModel) -> tuple[str, ...]:
     names = tuple(names)
+    valid = fittable(model)
+    owner = type(model).__name__
     if not names:
-        raise ValueError(f"fit: name at least one quantity to fit, from {', '.join(FITTABLE)}")
+        raise ValueError(f"fit: name at least one quantity to fit, from {', '.join(valid)}")
     for name in names:
-        if name not in FITTABLE:
-            raise ValueError(f"fit: cannot fit {name!r}; choose from {', '.join(FITTABLE)}")
+        if name not in valid:
+            raise ValueError(f"fit: cannot fit {name!r} for {owner}; choose from "
+                             f"{', '.join(valid)}")
     if len(set(names)) != len(names):
         raise ValueError(f"fit: a quantity is named twice in {list(names)}")
     return names
 
 
-def to_unconstrained(names: Sequence[str], model: CarPendulum) -> dict[str, jax.Array]:
-    """The unconstrained parameters (a dict pytree) of the quantities ``names`` of
-    ``model`` (module docstring); ``omega0``, ``v0`` are the model's initial velocities.
-    Raises ``ValueError`` if the model's inertia about the mass centre is not strictly
-    physical (then no finite log-Cholesky coordinates exist)."""
-    names = _check_names(names)
+def _initial_velocities(model, omega0, v0):
+    """``(omega0, v0)`` as float64 arrays of shapes (3,), (dof,); a missing one the model's
+    default (its class's ``DEFAULT_OMEGA0``/``DEFAULT_V0``, else its default state's)."""
+    if omega0 is None or v0 is None:
+        s = model.default_state()
+        w, v = model.velocities(s.R, s.mu, s.q, s.p)
+        omega0 = getattr(type(model), "DEFAULT_OMEGA0", w) if omega0 is None else omega0
+        v0 = getattr(type(model), "DEFAULT_V0", v) if v0 is None else v0
+    omega0 = jnp.asarray(omega0, jnp.float64)
+    v0 = jnp.asarray(v0, jnp.float64)
+    for name, value, shape in (("omega0", omega0, (3,)), ("v0", v0, (model.dof,))):
+        if value.shape != shape:
+            raise ValueError(f"fit: {name} must have shape {shape} for "
+                             f"{type(model).__name__}, got {value.shape}")
+        if not bool(jnp.all(jnp.isfinite(value))):
+            raise ValueError(f"fit: {name} must be finite, got {np.asarray(value).tolist()}")
+    return omega0, v0
+
+
+def to_unconstrained(names: Sequence[str], model: AbstractRigidBodyModel, *,
+                     omega0: Any = None, v0: Any = None) -> dict[str, jax.Array]:
+    """The unconstrained parameters (a dict pytree) of the quantities ``names`` (from
+    :func:`fittable`) of ``model`` (module docstring); ``omega0``, ``v0`` are the starting
+    initial velocities (default: those of ``model.default_state()``). Raises
+    ``ValueError`` if the model's inertia about the mass centre is not strictly physical
+    (then no finite log-Cholesky coordinates exist)."""
+    _check_model(model)
+    names = _check_names(names, model)
+    omega0, v0 = _initial_velocities(model, omega0, v0)
     params = {}
     for name in names:
         if name == "J":
-            J_c = centroidal_inertia(model.J, model.m, model.rho_c)
+            J_c = _centroidal(model)
             try:
                 params["J"] = params_from_inertia(J_c)
             except ValueError as err:
-                raise ValueError(f"fit: the starting J gives an inertia about the mass centre "
-                                 f"J - m(|rho_c|^2 I - rho_c rho_cᵀ) that is not physical: "
-                                 f"{err}") from None
+                what = ("an inertia about the mass centre J - m(|rho_c|^2 I - rho_c rho_cᵀ)"
+                        if _about_mass_centre(model) else "an inertia")
+                raise ValueError(f"fit: the starting J gives {what} that is not "
+                                 f"physical: {err}") from None
         elif name in ("m", "M"):
             params[name] = jnp.log(jnp.asarray(getattr(model, name), jnp.float64))
+        elif name == "omega0":
+            params[name] = omega0
+        elif name == "v0":
+            params[name] = v0
         else:
             params[name] = jnp.asarray(getattr(model, name), jnp.float64)
     return params
 
 
-def from_unconstrained(params: Mapping[str, jax.Array], model: CarPendulum) -> CarPendulum:
-    """The model with the fitted quantities set from ``params`` and the others from
-    ``model`` (``J_c`` held fixed when ``J`` is not fitted). Differentiable; works under
+def from_unconstrained(params: Mapping[str, jax.Array],
+                       model: AbstractRigidBodyModel) -> AbstractRigidBodyModel:
+    """The model with the fitted parameters set from ``params`` and the others from
+    ``model`` (``J_c`` held fixed when ``J`` is not fitted); the initial velocities in
+    ``params`` are not the model's (:func:`model_and_state`). Differentiable; works under
     tracing."""
-    m = jnp.exp(params["m"]) if "m" in params else model.m
-    M = jnp.exp(params["M"]) if "M" in params else model.M
-    rho_c = params.get("rho_c", model.rho_c)
-    if "J" in params:
-        J_c = inertia_from_params(params["J"])
-    else:
-        J_c = centroidal_inertia(model.J, model.m, model.rho_c)
-    return CarPendulum(
-        m=m, M=M, g=params.get("g", model.g), rho_c=rho_c, J=pivot_inertia(J_c, m, rho_c),
-        q0=model.q0, v0=params.get("v0", model.v0), R0=model.R0,
-        omega0=params.get("omega0", model.omega0),
-    )
+    fields = _field_names(model)
+    values = {}
+    for name in ("m", "M"):
+        if name in params:
+            values[name] = jnp.exp(params[name])
+    for name in ("rho_c", "g"):
+        if name in params:
+            values[name] = params[name]
+    if _about_mass_centre(model):
+        J_c = inertia_from_params(params["J"]) if "J" in params else _centroidal(model)
+        J = pivot_inertia(J_c, values.get("m", model.m), values.get("rho_c", model.rho_c))
+        if "J" in params or values.keys() & {"m", "rho_c"}:
+            values["J"] = J
+    elif "J" in params:
+        values["J"] = inertia_from_params(params["J"])
+    names = [n for n in MODEL_PARAMETERS if n in values and n in fields]
+    if not names:
+        return model
+    return eqx.tree_at(lambda mod: [getattr(mod, n) for n in names], model,
+                       [jnp.asarray(values[n], jnp.float64) for n in names])
+
+
+def model_and_state(params: Mapping[str, jax.Array], model: AbstractRigidBodyModel,
+                    obs: Observations) -> tuple[AbstractRigidBodyModel, RigidState]:
+    """``(model, state0)`` at the unconstrained parameters ``params``: the model
+    (:func:`from_unconstrained`) and its state from the observed initial configuration
+    ``(obs.R0, obs.q0)`` and the initial velocities, fitted (``params["omega0"]``,
+    ``params["v0"]``) or observed. Differentiable; works under tracing."""
+    fitted = from_unconstrained(params, model)
+    state0 = fitted.state_from_velocities(obs.R0, params.get("omega0", obs.omega0), obs.q0,
+                                          params.get("v0", obs.v0))
+    return fitted, state0
 
 
 # ---------------------------------------------------------------------------------------
@@ -285,9 +541,12 @@ def from_unconstrained(params: Mapping[str, jax.Array], model: CarPendulum) -> C
 
 
 class _Problem(eqx.Module):
-    """Everything the loss needs besides the parameters (passed in, never closed over)."""
+    """Everything the loss needs besides the parameters (passed in, never closed over):
+    the model's fixed parameters, the initial state's observed configuration and
+    velocities (starting values where fitted), the method, the data."""
 
-    model: CarPendulum
+    model: AbstractRigidBodyModel
+    initial: Observations  # R0, omega0, q0, v0 used; its t, R, q are empty
     method: AbstractIntegrator
     dt: jax.Array
     index: jax.Array
@@ -299,8 +558,8 @@ class _Problem(eqx.Module):
     checkpoint_every: int | None = eqx.field(static=True)
 
 
-def _problem(obs: Observations, model: CarPendulum, method: AbstractIntegrator, dt: float,
-             checkpoint_every: int | None) -> _Problem:
+def _problem(obs: Observations, model: AbstractRigidBodyModel, method: AbstractIntegrator,
+             dt: float, checkpoint_every: int | None) -> _Problem:
     k = np.round(np.asarray(obs.t) / dt).astype(np.int64)
     stride = int(np.gcd.reduce(k[k > 0]))
     n_steps = int(k[-1])
@@ -310,40 +569,51 @@ def _problem(obs: Observations, model: CarPendulum, method: AbstractIntegrator, 
         want = max(1, round(checkpoint_every / stride))
         divisors = [d for d in range(1, blocks + 1) if blocks % d == 0]
         checkpoint_every = stride * min(divisors, key=lambda d: abs(d - want))
-    return _Problem(model=model, method=method, dt=jnp.asarray(dt, jnp.float64),
-                    index=jnp.asarray(k // stride), R_obs=obs.R, q_obs=obs.q,
-                    weights=jnp.ones(k.shape, jnp.float64),
+    empty = jnp.zeros((0,), jnp.float64)
+    initial = Observations(t=empty, R=jnp.zeros((0, 3, 3)), q=jnp.zeros((0, obs.dof)),
+                           R0=obs.R0, omega0=obs.omega0, q0=obs.q0, v0=obs.v0)
+    return _Problem(model=model, initial=initial, method=method,
+                    dt=jnp.asarray(dt, jnp.float64), index=jnp.asarray(k // stride),
+                    R_obs=obs.R, q_obs=obs.q, weights=jnp.ones(k.shape, jnp.float64),
                     n_steps=n_steps, save_every=stride, checkpoint_every=checkpoint_every)
 
 
-def _loss(params, problem: _Problem) -> jax.Array:
-    model = from_unconstrained(params, problem.model)
-    state0 = model.default_state()
+def _rollout(params, problem: _Problem):
+    """The saved states of the rollout at the parameters: ``(R, q)`` at the observations."""
+    model, state0 = model_and_state(params, problem.model, problem.initial)
     traj = simulate(model, problem.method, state0, problem.dt, problem.n_steps,
                     save_every=problem.save_every, checkpoint_every=problem.checkpoint_every)
-    R = traj.state.R[problem.index]
-    q = traj.state.q[problem.index]
+    return traj.state.R[problem.index], traj.state.q[problem.index]
+
+
+def _per_dof(problem: _Problem) -> float:
+    """The observed degrees of freedom per observation: 3 (attitude) + dof."""
+    return 3.0 + problem.q_obs.shape[-1]
+
+
+def _loss(params, problem: _Problem) -> jax.Array:
+    R, q = _rollout(params, problem)
     per_obs = 0.5 * jnp.sum((R - problem.R_obs) ** 2, axis=(-2, -1)) + jnp.sum(
         (q - problem.q_obs) ** 2, axis=-1)
-    return jnp.sum(problem.weights * per_obs) / (5.0 * jnp.sum(problem.weights))
+    return jnp.sum(problem.weights * per_obs) / (_per_dof(problem) * jnp.sum(problem.weights))
 
 
 def _residuals(params, problem: _Problem) -> jax.Array:
     """The weighted residual vector ``r`` with ``|r|² = loss`` (for Gauss–Newton)."""
-    model = from_unconstrained(params, problem.model)
-    traj = simulate(model, problem.method, model.default_state(), problem.dt,
-                    problem.n_steps, save_every=problem.save_every,
-                    checkpoint_every=problem.checkpoint_every)
-    dR = (traj.state.R[problem.index] - problem.R_obs).reshape(-1, 9) / jnp.sqrt(2.0)
-    dq = traj.state.q[problem.index] - problem.q_obs
-    scale = jnp.sqrt(problem.weights / (5.0 * jnp.sum(problem.weights)))[:, None]
+    R, q = _rollout(params, problem)
+    dR = (R - problem.R_obs).reshape(-1, 9) / jnp.sqrt(2.0)
+    dq = q - problem.q_obs
+    scale = jnp.sqrt(problem.weights / (_per_dof(problem) * jnp.sum(problem.weights)))[:, None]
     return jnp.concatenate([scale * dR, scale * dq], axis=1).ravel()
 
 
-def _base_model(obs: Observations, model: CarPendulum | None) -> CarPendulum:
-    model = CarPendulum() if model is None else model
-    return CarPendulum(m=model.m, M=model.M, g=model.g, rho_c=model.rho_c, J=model.J,
-                       q0=obs.q0, v0=obs.v0, R0=obs.R0, omega0=obs.omega0)
+def _base_model(obs: Observations, model: AbstractRigidBodyModel | None
+                ) -> AbstractRigidBodyModel:
+    model = CarPendulum() if model is None else _check_model(model)
+    if obs.dof != model.dof:
+        raise ValueError(f"fit: the observations have {obs.dof} Euclidean coordinate(s) q, "
+                         f"{type(model).__name__} has {model.dof}")
+    return model
 
 
 def _method(method: str | AbstractIntegrator) -> AbstractIntegrator:
@@ -354,16 +624,36 @@ def _method(method: str | AbstractIntegrator) -> AbstractIntegrator:
     return RIGID_METHODS[method]()
 
 
+def _starting_obs(obs: Observations, model, omega0, v0) -> Observations:
+    """The observations with the given starting values of the fitted initial velocities."""
+    if omega0 is None and v0 is None:
+        return obs
+    omega0, v0 = _initial_velocities(model, obs.omega0 if omega0 is None else omega0,
+                                     obs.v0 if v0 is None else v0)
+    return eqx.tree_at(lambda o: (o.omega0, o.v0), obs, (omega0, v0))
+
+
 def make_loss(obs: Observations, dt: float, *, names: Sequence[str] = ("J",),
-              model: CarPendulum | None = None, method: str | AbstractIntegrator = "lgvi",
-              checkpoint_every: int | None = None):
+              model: AbstractRigidBodyModel | None = None,
+              method: str | AbstractIntegrator = "lgvi", checkpoint_every: int | None = None,
+              omega0: Any = None, v0: Any = None):
     """``(loss, params0, problem)``: the loss ``loss(params, problem)`` (module docstring;
     a pure function of two pytrees, to be ``jit``-ted, ``grad``-ed or ``jvp``-ed), the
-    unconstrained starting parameters of ``names`` from ``model`` (default: the paper's
-    parameters) and the problem (data, method, step). The initial state is the
-    observations'; with ``omega0``/``v0`` in ``names`` those are only starting values."""
+    unconstrained starting parameters of ``names`` (:func:`fittable`) from ``model``
+    (default: the paper's ``CarPendulum()``; its ``dof`` must be the observations') and
+    the problem (data, initial state, method, step). The initial state is the
+    observations'; with ``omega0``/``v0`` in ``names`` their values are only starting
+    values, the observed ones unless given here."""
     base = _base_model(obs, model)
-    params0 = to_unconstrained(names, base)
+    _check_names(names, base)
+    if omega0 is not None and "omega0" not in names:
+        raise ValueError("fit: a starting omega0 is only for a fitted omega0 (otherwise the "
+                         "observed initial velocity is used)")
+    if v0 is not None and "v0" not in names:
+        raise ValueError("fit: a starting v0 is only for a fitted v0 (otherwise the "
+                         "observed initial velocity is used)")
+    obs = _starting_obs(obs, base, omega0, v0)
+    params0 = to_unconstrained(names, base, omega0=obs.omega0, v0=obs.v0)
     return _loss, params0, _problem(obs, base, _method(method), dt, checkpoint_every)
 
 
@@ -377,7 +667,7 @@ class FitResult:
     """Outcome of :func:`fit`.
 
     Attributes:
-        model: the fitted model (its initial state has the fitted velocities).
+        model: the fitted model (parameters only).
         params: the final unconstrained parameters.
         names: the fitted quantities.
         loss_history: the loss before each iteration (over the current stage's horizon),
@@ -390,9 +680,12 @@ class FitResult:
         stopped: why it stopped (``"converged"``, ``"iterations"`` or ``"non-finite"``).
         stage_starts: the iteration at which each horizon stage began.
         horizons: each stage's last observation time.
+        state0: the initial state of the fit: the observed configuration with the fitted
+            (or observed) initial velocities, in the fitted model's momenta.
+        omega0, v0: those initial velocities (``v0`` empty for a model with ``dof = 0``).
     """
 
-    model: CarPendulum
+    model: AbstractRigidBodyModel
     params: dict[str, jax.Array]
     names: tuple[str, ...]
     loss_history: list[float]
@@ -407,18 +700,26 @@ class FitResult:
     loss_final: float = math.nan
     stage_starts: list[int] = dataclasses.field(default_factory=list)
     horizons: list[float] = dataclasses.field(default_factory=list)
+    state0: RigidState | None = None
+    omega0: np.ndarray | None = None
+    v0: np.ndarray | None = None
 
     @property
     def J_c(self) -> np.ndarray:
-        """The fitted inertia about the mass centre."""
-        m = self.model
-        return np.asarray(centroidal_inertia(m.J, m.m, m.rho_c))
+        """The fitted inertia about the mass centre (``J`` itself for a model without a
+        mass-centre offset: the free body's)."""
+        return np.asarray(_centroidal(self.model))
 
     def values(self) -> dict[str, Any]:
-        """Physical values of every model parameter (fitted or fixed) as lists."""
+        """Physical values of every fittable quantity (fitted or fixed) as lists: the
+        model's parameters among ``J, rho_c, m, M, g``, the initial velocities ``omega0``
+        (and ``v0`` when ``dof > 0``), and ``J_c``."""
         m = self.model
         out = {name: np.asarray(getattr(m, name)).tolist()
-               for name in ("J", "rho_c", "m", "M", "g", "omega0", "v0")}
+               for name in fittable(m) if name in MODEL_PARAMETERS}
+        out["omega0"] = np.asarray(self.omega0).tolist()
+        if m.dof:
+            out["v0"] = np.asarray(self.v0).tolist()
         out["J_c"] = self.J_c.tolist()
         return out
 
@@ -660,13 +961,16 @@ def _loss_value(optimizer: str, params, problem) -> float:
 
 
 def fit(obs: Observations, dt: float, *, names: Sequence[str] = ("J",),
-        model: CarPendulum | None = None, method: str | AbstractIntegrator = "lgvi",
-        optimizer: str = "gauss-newton", iterations: int = 300, lr: float | None = None,
+        model: AbstractRigidBodyModel | None = None,
+        method: str | AbstractIntegrator = "lgvi", optimizer: str = "gauss-newton",
+        iterations: int = 300, lr: float | None = None,
         horizons: Sequence[float] = HORIZONS, tol: float = 1e-10, patience: int = 3,
         checkpoint_every: int | None = None, progress: bool = False,
-        callback: Callable[[int, float], None] | None = None) -> FitResult:
-    """Fit ``names`` (from :data:`FITTABLE`) to the observations ``obs`` by minimising the
-    trajectory loss (module docstring) with an optax optimiser.
+        callback: Callable[[int, float], None] | None = None, omega0: Any = None,
+        v0: Any = None) -> FitResult:
+    """Fit ``names`` (from :func:`fittable`: :data:`FITTABLE` for the car-pendulum) of a
+    rigid-body model to the observations ``obs`` by minimising the trajectory loss (module
+    docstring).
 
     **Horizon continuation.** Over a long horizon the loss of a spinning pendulum is far
     from convex: a wrong inertia shifts the phase of the motion, and the loss has local
@@ -680,8 +984,9 @@ def fit(obs: Observations, dt: float, *, names: Sequence[str] = ("J",),
         obs: validated observations (:func:`check_observations`, :func:`load_observations`).
         dt: the integrator's step; every observation time must be a multiple of it.
         names: the quantities to fit; the others keep ``model``'s values.
-        model: the starting (and fixed) parameters; default the paper's ``CarPendulum()``.
-            Its initial state is replaced by the observations'.
+        model: the rigid-body model (:class:`~lgvi_jax.models.AbstractRigidBodyModel`)
+            with the starting (and fixed) parameters; default the paper's
+            ``CarPendulum()``. Its ``dof`` must be the observations' (``obs.q``'s columns).
         method: an integrator or its name (``lgvi``, ``hamel-exact``, ...).
         optimizer: ``"gauss-newton"`` (default), ``"lbfgs"`` or ``"adam"``.
         iterations: the most optimiser iterations in all (>= 1), shared by the stages:
@@ -700,6 +1005,8 @@ def fit(obs: Observations, dt: float, *, names: Sequence[str] = ("J",),
         progress: draw a progress bar on a terminal (stderr; silent when not a terminal).
         callback: called as ``callback(iteration, loss)`` after each iteration (the loss of
             the current stage).
+        omega0, v0: starting values of the fitted initial velocities (default: the
+            observed ``obs.omega0``, ``obs.v0``); only with that name in ``names``.
 
     Returns:
         A :class:`FitResult`.
@@ -714,7 +1021,7 @@ def fit(obs: Observations, dt: float, *, names: Sequence[str] = ("J",),
         raise ValueError(f"fit: horizons must increase in (0, 1] and end with 1.0, got "
                          f"{horizons!r}")
     _, params, problem = make_loss(obs, dt, names=names, model=model, method=method,
-                                      checkpoint_every=checkpoint_every)
+                                   checkpoint_every=checkpoint_every, omega0=omega0, v0=v0)
     opt = _optimizer(optimizer, lr)
     step = _adam_step if optimizer == "adam" else type(opt).step
     t_obs = np.asarray(obs.t)
@@ -777,10 +1084,13 @@ def fit(obs: Observations, dt: float, *, names: Sequence[str] = ("J",),
     loss_final = _loss_value(optimizer, params, problem)
     history.append(loss_final)
     wall = time.perf_counter() - start
+    fitted, state0 = model_and_state(params, problem.model, problem.initial)
     return FitResult(
-        model=from_unconstrained(params, problem.model), params=params, names=tuple(names),
+        model=fitted, params=params, names=tuple(names),
         loss_history=history, iterations=it, wall_time_s=wall, compile_time_s=compile_s,
         stopped=stopped, method=problem.method.name, optimizer=optimizer, dt=float(dt),
         stage_starts=stage_starts, horizons=[float(t_obs[w > 0][-1]) for w in stages],
-        loss_initial=loss_initial, loss_final=loss_final,
+        loss_initial=loss_initial, loss_final=loss_final, state0=state0,
+        omega0=np.asarray(params.get("omega0", problem.initial.omega0)),
+        v0=np.asarray(params.get("v0", problem.initial.v0)),
     )

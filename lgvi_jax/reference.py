@@ -39,20 +39,26 @@ Conserved besides ``E`` and ``p``: the vertical angular momentum about the origi
 ``e3·(RΠ) + x p_y − y p_x`` (rotations about the vertical through the origin).
 
 This module is the independent reference of the tests, of the identification and
-work-precision experiments. It uses only the model's parameters (as plain numbers) and its initial
-velocities; none of the library's mechanics (autodiff momenta, velocities, vector field).
-The library enters only as the system under test.
+work-precision experiments. It uses only the model's parameters (as plain numbers) and the
+initial configuration and velocities ``(R0, ω0, q0, v0)``; none of the library's mechanics
+(autodiff momenta, velocities, vector field). The library enters only as the system under
+test. :func:`paper_scene` and :func:`moving_scene` are the two test problems: a
+:class:`ReferenceScene` holds the model, its initial condition, the library's initial state
+(``state0``) and the reference started from the same condition (``reference()``).
 
 Needs SciPy (the ``dev`` and ``bench`` extras): imported when a solve is asked for.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
-__all__ = ["HandReference", "moving_scene", "paper_scene"]
+__all__ = ["HandReference", "ReferenceScene", "moving_scene", "paper_scene"]
 
 E3 = np.array([0.0, 0.0, 1.0])
 P = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
@@ -64,18 +70,30 @@ def hat(w):
 
 class HandReference:
     """The hand-derived equations (module docstring) in NumPy; state vector
-    ``y = (R (9, row-major), ω (3), q = (x, y) (2), v (2))``."""
+    ``y = (R (9, row-major), ω (3), q = (x, y) (2), v (2))``.
 
-    def __init__(self, model):
+    ``model``: a :class:`~lgvi_jax.models.CarPendulum`, of which only the parameters ``m, M,
+    g, rho_c, J`` are read. ``R0, omega0, q0, v0``: the initial configuration and velocities
+    (the arguments of ``model.state``), each defaulting to the model's default initial
+    condition (the paper's); the initial state is ``y0``."""
+
+    def __init__(self, model, R0=None, omega0=None, q0=None, v0=None):
         self.m = float(model.m)
         self.M = float(model.M)
         self.g = float(model.g)
         self.rho = np.array(model.rho_c, dtype=np.float64)
         self.J = np.array(model.J, dtype=np.float64)
-        self.y0 = np.concatenate(
-            [np.ravel(np.asarray(model.R0)), np.asarray(model.omega0), np.asarray(model.q0),
-             np.asarray(model.v0)]
-        ).astype(np.float64)
+        cls = type(model)
+        initial = {"R0": (R0, cls.DEFAULT_R0, (3, 3)), "omega0": (omega0, cls.DEFAULT_OMEGA0, (3,)),
+                   "q0": (q0, cls.DEFAULT_Q0, (2,)), "v0": (v0, cls.DEFAULT_V0, (2,))}
+        parts = []
+        for name, (value, default, shape) in initial.items():
+            arr = np.asarray(default if value is None else value, dtype=np.float64)
+            if arr.shape != shape:
+                raise ValueError(f"HandReference: {name} must have shape {shape}, got "
+                                 f"{arr.shape}")
+            parts.append(np.ravel(arr))
+        self.y0 = np.concatenate(parts)
 
     @staticmethod
     def split(y):
@@ -169,21 +187,58 @@ class HandReference:
         return np.array([q[0], q[1], 0.0]) + R @ self.rho
 
 
-def paper_scene():
+@dataclasses.dataclass(frozen=True, eq=False)
+class ReferenceScene:
+    """A car-pendulum problem: the model (its parameters) and the initial condition,
+    attitude ``R0`` (3, 3), body angular velocity ``omega0`` (3,), cart position ``q0`` and
+    velocity ``v0`` (2,), as float64 NumPy arrays."""
+
+    model: Any
+    R0: np.ndarray
+    omega0: np.ndarray
+    q0: np.ndarray
+    v0: np.ndarray
+
+    @property
+    def initial_condition(self) -> dict[str, np.ndarray]:
+        """``{"R0": ..., "omega0": ..., "q0": ..., "v0": ...}``: the keyword arguments of
+        ``model.state`` and of :class:`HandReference`."""
+        return {"R0": self.R0, "omega0": self.omega0, "q0": self.q0, "v0": self.v0}
+
+    @functools.cached_property
+    def state0(self):
+        """The library's initial state, ``model.state(**initial_condition)``."""
+        return self.model.state(**self.initial_condition)
+
+    def reference(self) -> HandReference:
+        """The independent reference from the same parameters and initial condition."""
+        return HandReference(self.model, **self.initial_condition)
+
+
+def _scene(model, **initial) -> ReferenceScene:
+    cls = type(model)
+    defaults = {"R0": cls.DEFAULT_R0, "omega0": cls.DEFAULT_OMEGA0, "q0": cls.DEFAULT_Q0,
+                "v0": cls.DEFAULT_V0}
+    values = {k: np.asarray(initial.get(k, d), dtype=np.float64) for k, d in defaults.items()}
+    return ReferenceScene(model=model, **values)
+
+
+def paper_scene() -> ReferenceScene:
     """The paper's parameters and initial state (zero horizontal momentum)."""
     from .models import CarPendulum
 
-    return CarPendulum()
+    return _scene(CarPendulum())
 
 
-def moving_scene():
-    """Non-zero horizontal momentum, a generic attitude, the cart away from the origin (so
-    that ``x p_y − y p_x`` matters in the vertical angular momentum)."""
+def moving_scene() -> ReferenceScene:
+    """The paper's parameters; non-zero horizontal momentum, a generic attitude, the cart
+    away from the origin (so that ``x p_y − y p_x`` matters in the vertical angular
+    momentum)."""
     import jax.numpy as jnp
 
     from . import so3
     from .models import CarPendulum
 
-    return CarPendulum(q0=(0.7, -0.4), v0=(0.8, -0.3), omega0=(1.0, -0.5, 3.0),
-                       R0=so3.exp(jnp.array([0.6, -0.9, 0.4])))
+    return _scene(CarPendulum(), q0=(0.7, -0.4), v0=(0.8, -0.3), omega0=(1.0, -0.5, 3.0),
+                  R0=so3.exp(jnp.array([0.6, -0.9, 0.4])))
 

@@ -2,7 +2,10 @@
 
 This is the table behind ``lgvi-jax simulate SYSTEM ...``. The library itself never parses
 strings: the CLI turns ``--set NAME=V1,V2`` into float arrays and hands them to
-:meth:`Scene.build`, which validates them and returns ``(model, state0)``.
+:meth:`Scene.build`, which validates them and returns ``(model, state0)``. A scene's
+parameters mix the model's physical parameters and the initial condition (``q0``, ``p0``,
+``R0``, ``omega0``, ``v0``): its ``make`` builds the model from the first and the state from
+the second, with ``model.state(...)``.
 """
 
 from __future__ import annotations
@@ -87,10 +90,8 @@ class Scene:
 
 
 def _oscillator_make(values):
-    model = HarmonicOscillator(
-        m=values["m"][0], k=values["k"][0], q0=values["q0"][0], p0=values["p0"][0]
-    )
-    return model, model.default_state()
+    model = HarmonicOscillator(m=values["m"][0], k=values["k"][0])
+    return model, model.state(q0=values["q0"][0], p0=values["p0"][0])
 
 
 def _oscillator_arrays(model, traj) -> dict[str, np.ndarray]:
@@ -127,25 +128,21 @@ def _rigid_arrays(model, traj) -> dict[str, np.ndarray]:
 
 
 def _free_body_make(values):
-    model = FreeRigidBody(J=values["J"].reshape(3, 3), R0=values["R0"].reshape(3, 3),
-                          omega0=values["omega0"])
-    return model, model.default_state()
+    model = FreeRigidBody(J=values["J"].reshape(3, 3))
+    return model, model.state(R0=values["R0"].reshape(3, 3), omega0=values["omega0"])
 
 
 def _heavy_top_make(values):
     model = HeavyTop(J=values["J"].reshape(3, 3), m=values["m"][0], g=values["g"][0],
-                     rho_c=values["rho_c"], R0=values["R0"].reshape(3, 3),
-                     omega0=values["omega0"])
-    return model, model.default_state()
+                     rho_c=values["rho_c"])
+    return model, model.state(R0=values["R0"].reshape(3, 3), omega0=values["omega0"])
 
 
 def _car_pendulum_make(values):
-    model = CarPendulum(
-        m=values["m"][0], M=values["M"][0], g=values["g"][0], rho_c=values["rho_c"],
-        J=values["J"].reshape(3, 3), q0=values["q0"], v0=values["v0"],
-        R0=values["R0"].reshape(3, 3), omega0=values["omega0"],
-    )
-    return model, model.default_state()
+    model = CarPendulum(m=values["m"][0], M=values["M"][0], g=values["g"][0],
+                        rho_c=values["rho_c"], J=values["J"].reshape(3, 3))
+    return model, model.state(R0=values["R0"].reshape(3, 3), omega0=values["omega0"],
+                              q0=values["q0"], v0=values["v0"])
 
 
 _R0_DOC = "initial attitude, body to inertial, 9 numbers row-major (must be in SO(3))"

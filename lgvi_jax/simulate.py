@@ -167,7 +167,8 @@ def simulate(
         model: the system (e.g. :class:`~lgvi_jax.models.HarmonicOscillator`); its fields are
             the parameters, differentiable and batchable.
         method: a one-step method (:class:`~lgvi_jax.integrators.AbstractIntegrator`).
-        state0: the initial state (e.g. ``model.default_state()``), float64.
+        state0: the initial state, float64 (e.g. ``model.state(...)``, or
+            ``model.default_state()``).
         dt: the step; non-zero and finite. A negative step integrates backwards in time.
         n_steps: number of steps (static: one compilation per value).
         save_every: keep every ``save_every``-th state; must divide ``n_steps``.

@@ -282,10 +282,10 @@ def _run_to(model, method, state0, h, n):
 def references():
     out = {}
     for case, make in CASES.items():
-        model = make()
-        ref = HandReference(model)
+        scene = make()
+        ref = scene.reference()
         times = [T_ORDER * j / N_CHECKPOINTS for j in range(N_CHECKPOINTS + 1)]
-        out[case] = (model, ref, ref.at(times))
+        out[case] = (scene.model, scene.state0, ref, ref.at(times))
     return out
 
 
@@ -298,10 +298,9 @@ def test_observed_order_against_the_reference(references, case, order):
     checkpoints t = 0.2, 0.4, …, 1, as in test_reference) are 4 ± 0.5, 6 ± 0.5, 8 ± 1
     over the steps of ``ORDER_STEPS`` (measured: 4.00–4.01, 6.01–6.03, 7.39–8.12; the
     reasons of each band at ``TOLERANCE``)."""
-    model, ref, ys = references[case]
+    model, s0, ref, ys = references[case]
     method = resolve_method(f"lgvi@{order}", RIGID_METHODS)
     E0 = ref.energy(ys[0])
-    s0 = model.default_state()
     steps = ORDER_STEPS[case, order]
     config, energy = [], []
     for h in steps:
@@ -322,9 +321,9 @@ def test_observed_order_against_the_reference(references, case, order):
 def test_time_reversibility(order):
     """100 composed steps of h = 0.02 (2 s of the moving car-pendulum), then 100 of −h,
     return to the initial state to 1e-11, as for the base method (test_lie)."""
-    model = moving_scene()
+    scene = moving_scene()
+    model, s0 = scene.model, scene.state0
     method = resolve_method(f"lgvi@{order}", RIGID_METHODS)
-    s0 = model.default_state()
     end = _run_to(model, method, s0, 0.02, 100)
     back = _run_to(model, method, end, -0.02, 100)
     for a, b in zip(jax.tree.leaves(back), jax.tree.leaves(s0), strict=True):
@@ -343,8 +342,8 @@ def test_symplectic_in_canonical_coordinates():
     derivatives through the sub-step scan and the Newton solves)."""
     from lgvi_jax.models import RigidState
 
-    model = moving_scene()
-    s0 = model.default_state()
+    scene = moving_scene()
+    model, s0 = scene.model, scene.state0
     # The sub-steps solved on arrays: the same discrete equations as the default scalar
     # engine (tests/test_scalarize.py: the same trajectories to round-off), whose tangent
     # rule, the one custom_jvp rule reverse mode also transposes, is checked against
@@ -386,8 +385,8 @@ def test_momentum_maps_over_1e4_composed_steps():
     the vertical angular momentum are conserved by ``lgvi@4`` and ``lgvi@8`` (the fewest
     and the most stages; ``@6`` is the same code) to the base method's round-off level,
     and R stays on SO(3)."""
-    model = moving_scene()
-    s0 = model.default_state()
+    scene = moving_scene()
+    model, s0 = scene.model, scene.state0
     # The base method's run saves every 10th state: the compiled rollout tests/test_lie.py
     # runs (tests/conftest.py: SHARED_ROLLOUT_STEPS), loaded rather than compiled again.
     base = L.simulate(model, LGVI(), s0, 0.02, SHARED_ROLLOUT_STEPS,

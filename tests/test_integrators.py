@@ -41,7 +41,7 @@ class Pendulum(AbstractEuclideanModel):
     def potential(self, q):
         return -jnp.sum(jnp.cos(q))
 
-    def default_state(self):
+    def state(self):
         return PhaseState(q=jnp.array([1.0]), p=jnp.array([0.5]))
 
 
@@ -59,7 +59,7 @@ class VariableMass(AbstractEuclideanModel):
     def potential(self, q):
         return 0.5 * jnp.sum(q**2) + q[0] ** 4 / 8
 
-    def default_state(self):
+    def state(self):
         return PhaseState(q=jnp.array([0.6, -0.3]), p=jnp.array([0.2, 0.9]))
 
 
@@ -166,10 +166,10 @@ N_LONG = 100_000
 
 @pytest.fixture(scope="module")
 def long_runs():
-    model = HarmonicOscillator(m=1.0, k=1.0, q0=1.0, p0=0.0)
+    model = HarmonicOscillator(m=1.0, k=1.0)
     return {
         name: relative_energy_error(
-            simulate(model, EUCLIDEAN_METHODS[name](), model.default_state(), 0.1, N_LONG,
+            simulate(model, EUCLIDEAN_METHODS[name](), model.state(q0=1.0, p0=0.0), 0.1, N_LONG,
                      save_every=10).energy
         )
         for name in ("rk4", "gl4", "galerkin4")

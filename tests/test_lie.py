@@ -39,15 +39,23 @@ def vee_np(W):
 
 
 def moving_car():
-    """Car-pendulum with non-zero horizontal momentum, a generic attitude and the cart away
-    from the origin (so that every term of the momentum maps is exercised)."""
-    return CarPendulum(q0=(3.0, -2.0), v0=(0.8, -0.3), R0=so3.exp(jnp.array([0.3, -1.2, 0.7])),
-                       omega0=(1.0, -0.5, 3.0))
+    """``(model, state0)``: the paper's car-pendulum with non-zero horizontal momentum, a
+    generic attitude and the cart away from the origin (so that every term of the momentum
+    maps is exercised)."""
+    model = CarPendulum()
+    return model, model.state(q0=(3.0, -2.0), v0=(0.8, -0.3),
+                              R0=so3.exp(jnp.array([0.3, -1.2, 0.7])), omega0=(1.0, -0.5, 3.0))
+
+
+#: The initial condition of :func:`free_body`.
+FREE_BODY_R0 = so3.exp(jnp.array([0.4, 0.1, -0.8]))
+FREE_BODY_OMEGA0 = (0.7, -1.1, 2.0)
 
 
 def free_body():
-    return FreeRigidBody(J=J_GENERIC, R0=so3.exp(jnp.array([0.4, 0.1, -0.8])),
-                         omega0=(0.7, -1.1, 2.0))
+    """``(model, state0)``: a free body of generic inertia, generic attitude and spin."""
+    model = FreeRigidBody(J=J_GENERIC)
+    return model, model.state(R0=FREE_BODY_R0, omega0=FREE_BODY_OMEGA0)
 
 
 #: Steps between saved states of :func:`long_run`: the state after ``k`` steps (``k`` a
@@ -71,9 +79,8 @@ def long_run(model, method, state0, dt):
 def long_runs():
     """10^4 steps of h = 5e-3 of the moving car-pendulum, every VI method (every 10th
     state saved)."""
-    model = moving_car()
-    s0 = model.default_state()
-    return model, {name: long_run(model, RIGID_METHODS[name](), s0, 5e-3) for name in VI}
+    model, s0 = moving_car()
+    return model, s0, {name: long_run(model, RIGID_METHODS[name](), s0, 5e-3) for name in VI}
 
 
 # ------------------------------------------------------------------ paper's equations
@@ -85,9 +92,9 @@ def test_lgvi_matches_paper_eqs_18_19_step_by_step():
     """Free rigid body: each lgvi step satisfies eq. 18, ``hat(hΠ_k) = F_k J_d − J_d F_kᵀ``
     (with the oracle's own F solved by SciPy from the engine's state), and eq. 19,
     ``Π_{k+1} = F_kᵀ Π_k``, ``R_{k+1} = R_k F_k``."""
-    model = free_body()
+    model, s0 = free_body()
     h, n = 0.05, 60
-    traj = simulate(model, RIGID_METHODS["lgvi"](), model.default_state(), h, n)
+    traj = simulate(model, RIGID_METHODS["lgvi"](), s0, h, n)
     R, Pi = np.asarray(traj.state.R), np.asarray(traj.state.mu)
     Jd = 0.5 * np.trace(J_GENERIC) * np.eye(3) - J_GENERIC
 
@@ -115,9 +122,9 @@ def test_hamel_matches_paper_eqs_32_35_step_by_step():
     """Free rigid body: each ``hamel`` step solves eq. 32, ``Jω_k = Jξ + (h/2) ξ × Jξ``,
     then ``R_{k+1} = R_k exp(hξ)`` (SciPy ``expm``) and eq. 34, ``Jω_{k+1} = Jξ − (h/2) ξ ×
     Jξ``. (With the paper's variation formula, the free-body scheme is exactly eqs. 32–35.)"""
-    model = free_body()
+    model, s0 = free_body()
     h, n = 0.05, 60
-    traj = simulate(model, RIGID_METHODS["hamel"](), model.default_state(), h, n)
+    traj = simulate(model, RIGID_METHODS["hamel"](), s0, h, n)
     R, mu = np.asarray(traj.state.R), np.asarray(traj.state.mu)
     J = J_GENERIC
 
@@ -141,7 +148,7 @@ def test_car_pendulum_invariants_over_1e4_steps(long_runs, name):
     momentum to 1e-12, R on SO(3) to 1e-12, the vertical angular momentum to 1e-11 for
     the Noether methods; the paper's ``hamel`` does not conserve it (its variation formula
     is only first-order accurate with exp)."""
-    _, runs = long_runs
+    _, _, runs = long_runs
     traj = runs[name]
     assert traj.ok, traj.message
     inv = {k: np.asarray(v) for k, v in traj.invariants.items()}
@@ -170,8 +177,7 @@ def test_hamel_angular_momentum_error_is_second_order(long_runs):
     runs: h = 0.005 is the fixture's run, h = 0.01 the same compiled rollout. The maximum
     is taken over the same times for both, t = 0, 0.1, ..., 2: the error is h² f(t) +
     O(h⁴), so its maximum over any fixed set of times scales as h² as well.)"""
-    model, runs = long_runs
-    s0 = model.default_state()
+    model, s0, runs = long_runs
     errors = []
     for h in (0.01, 0.005):
         traj = runs["hamel"] if h == 5e-3 else long_run(model, RIGID_METHODS["hamel"](), s0, h)
@@ -195,12 +201,12 @@ def test_free_body_and_heavy_top_momentum_maps(name):
     rollout; the class FreeRigidBody itself: tests/test_rigid_models.py (its equations),
     the step-by-step tests above, tests/test_blindspots.py (lgvi's momentum over a sweep)."""
     method = RIGID_METHODS[name]()
-    fb = free_body()
-    body = HeavyTop(J=fb.J, g=0.0, R0=fb.R0, omega0=fb.omega0)
+    fb, fb_s0 = free_body()
+    body = HeavyTop(J=fb.J, g=0.0)
     # The same Lagrangian (½ωᵀJω, potential m g e3ᵀRρ_c = 0), so the same state and
     # discrete equations: the initial states and energies are the free body's.
-    s0 = body.default_state()
-    for a, b in zip(jax.tree.leaves(s0), jax.tree.leaves(fb.default_state()), strict=True):
+    s0 = body.state(R0=FREE_BODY_R0, omega0=FREE_BODY_OMEGA0)
+    for a, b in zip(jax.tree.leaves(s0), jax.tree.leaves(fb_s0), strict=True):
         np.testing.assert_array_equal(a, b)
     assert float(body.energy(s0)) == float(fb.energy(s0))
     traj = simulate(body, method, s0, 0.02, 2000, save_every=10)
@@ -219,8 +225,8 @@ def test_rk4_drifts_off_so3_and_momentum():
     """Contrast: RK4 on the embedded equations leaves SO(3) and loses the momentum map
     (within the first 2500 steps, every 10th state, of a run through the rollout of
     :func:`long_run`, which the quick reproduction also runs for RK4)."""
-    model = moving_car()
-    traj = long_run(model, RIGID_METHODS["rk4"](), model.default_state(), 0.02)
+    model, s0 = moving_car()
+    traj = long_run(model, RIGID_METHODS["rk4"](), s0, 0.02)
     first = jax.tree.map(lambda x: x[: 2500 // EVERY + 1], (traj.state, traj.invariants))
     assert float(np.max(so3.orthogonality_error(first[0].R))) > 1e-8
     lz = np.asarray(first[1]["angular_momentum_z"])
@@ -235,9 +241,8 @@ def test_time_reversibility(long_runs, name):
     """N = 400 steps with h, then N with −h, return to the start within 1e-11 (symmetric
     methods). (The forward steps are the first 400 of the fixture's run; the backward
     ones, the first 400 of a run with −h through the same compiled rollout.)"""
-    model, runs = long_runs
+    model, s0, runs = long_runs
     method = RIGID_METHODS[name]()
-    s0 = model.default_state()
     end = jax.tree.map(lambda x: x[400 // EVERY], runs[name].state)
     back = long_run(model, method, end, -5e-3)
     assert back.ok, back.message
@@ -252,9 +257,8 @@ def test_time_reversibility(long_runs, name):
 def test_rk4_is_not_reversible():
     """Contrast (shows the test above can fail). A plain loop: RK4's end state is slightly
     off SO(3), which ``simulate`` would refuse as an initial state."""
-    model = moving_car()
+    model, s0 = moving_car()
     method = RIGID_METHODS["rk4"]()
-    s0 = model.default_state()
 
     @jax.jit
     def there_and_back(s):
@@ -290,9 +294,8 @@ def test_symplecticity_in_canonical_coordinates(name):
     has a Jacobian ``M`` with ``Mᵀ Ω M = Ω``: to round-off for the exactly variational
     methods; not for the paper's ``hamel``, ``hamel-cayley`` (approximate variations) or
     RK4."""
-    model = moving_car()
+    model, s0 = moving_car()
     method = RIGID_METHODS[name]()
-    s0 = model.default_state()
     to_x, to_state = _chart(s0.R)
     h = 0.05
 
@@ -370,8 +373,7 @@ def test_vmap_over_initial_states_equals_loop():
     model = CarPendulum()
     method = RIGID_METHODS["lgvi"]()
     omegas = jnp.array([[0.1, 0.2, 5.0], [1.0, -0.5, 3.0], [0.0, 2.0, 0.5]])
-    states = jax.vmap(lambda w: model.state_from_velocities(model.R0, w, model.q0,
-                                                            model.v0))(omegas)
+    states = jax.vmap(lambda w: model.state(omega0=w))(omegas)
     batched = jax.vmap(lambda s: simulate(model, method, s, 5e-3, 100, save_every=50))(states)
     for i in range(len(omegas)):
         # The single runs: states 0, 50 and 100 of runs through the compiled rollout of
@@ -398,9 +400,9 @@ def test_gradient_through_rollout_matches_finite_differences(name):
 
     def final_centre(params):
         scale, m, wz = params
-        model = CarPendulum(J=base.J * scale, m=m,
-                            omega0=base.omega0.at[2].set(wz))
-        traj = simulate(model, method, model.default_state(), 0.01, 100, save_every=100)
+        model = CarPendulum(J=base.J * scale, m=m)
+        omega0 = jnp.asarray(CarPendulum.DEFAULT_OMEGA0).at[2].set(wz)
+        traj = simulate(model, method, model.state(omega0=omega0), 0.01, 100, save_every=100)
         s = jax.tree.map(lambda x: x[-1], traj.state)
         return jnp.sum(model.pendulum_centre(s) * jnp.array([1.0, -2.0, 0.5]))
 
@@ -450,7 +452,7 @@ def test_extrapolated_guess_gives_the_same_solutions_in_fewer_iterations(long_ru
     solutions (``step_with``, ``predict``) instead of the current velocities (``step``, an
     O(h) guess): the same states to the solver's tolerance over 2000 steps of the moving
     cart, in fewer iterations (2 against 4 at h = 5e-3)."""
-    model, runs = long_runs
+    model, s0, runs = long_runs
     method = RIGID_METHODS["hamel"]()
     n, every = 2000, 100
 
@@ -467,7 +469,7 @@ def test_extrapolated_guess_gives_the_same_solutions_in_fewer_iterations(long_ru
 
         return jax.lax.scan(block, state, None, length=n // every)[1]
 
-    states, its = plain(model.default_state())
+    states, its = plain(s0)
     full = runs["hamel"]
     extrapolated = jax.tree.map(lambda x: x[every // EVERY : n // EVERY + 1 : every // EVERY],
                                 full.state)
@@ -515,8 +517,7 @@ def test_mass_matrix_chord_gives_the_same_solutions(long_runs, name):
     as the default to round-off over 2000 steps of the moving cart, the momentum maps as
     well conserved, with more but cheaper iterations. (The default's 2000 steps: the first
     2000 of a run through the compiled rollout of the fixture.)"""
-    model, _ = long_runs
-    s0 = model.default_state()
+    model, s0, _ = long_runs
     default = RIGID_METHODS[name]()
     mass = (LGVI(chord_matrix="mass") if name == "lgvi"
             else HamelVI(map="exp", variation="exact", chord_matrix="mass"))

@@ -42,12 +42,11 @@ def test_order_4_against_the_reference(case):
     small and the h^5 term still shows at these steps (local slopes 4.59, 4.43, 4.27,
     tending to 4; RK4 on the embedded equations behaves alike, test_reference): only its
     configuration order is asserted there."""
-    model = CASES[case]()
-    ref = HandReference(model)
+    scene = CASES[case]()
+    model, s0, ref = scene.model, scene.state0, scene.reference()
     ys = ref.at([T_ORDER * j / N_CHECKPOINTS for j in range(N_CHECKPOINTS + 1)])
     E0 = ref.energy(ys[0])
     method = RIGID_METHODS["rkmk4"]()
-    s0 = model.default_state()
     config, energy, orth = [], [], []
     for h in STEPS:
         n = round(T_ORDER / h)
@@ -70,8 +69,8 @@ def test_stays_on_so3_over_1e5_steps_but_loses_the_momentum_map():
     at every saved state (the rotation is only ever multiplied by exponentials), whereas
     the vertical angular momentum drifts (neither symplectic nor momentum-conserving).
     The cart momentum is conserved to round-off anyway: its force is exactly zero."""
-    model = moving_scene()
-    traj = L.simulate(model, RKMK4(), model.default_state(), 0.01, 100_000, save_every=1000)
+    scene = moving_scene()
+    traj = L.simulate(scene.model, RKMK4(), scene.state0, 0.01, 100_000, save_every=1000)
     assert traj.ok, traj.message
     orth = np.asarray(so3.orthogonality_error(traj.state.R))
     # Each step multiplies R by exponentials orthogonal to a few ulps: the error grows as
@@ -89,8 +88,8 @@ def test_stays_on_so3_over_1e5_steps_but_loses_the_momentum_map():
 def test_is_not_time_reversible():
     """Contrast with the symmetric methods (test_composition, test_lie): 100 steps of
     h = 0.02 and back do not return to the start beyond the O(h^4) error."""
-    model = moving_scene()
-    s0 = model.default_state()
+    scene = moving_scene()
+    model, s0 = scene.model, scene.state0
     method = RKMK4()
     end = _run_to(model, method, s0, 0.02, 100)
     back = _run_to(model, method, end, -0.02, 100)

@@ -28,7 +28,7 @@ class Gyroscopic(AbstractEuclideanModel):
     def potential(self, q):
         return 0.5 * jnp.sum(q**2)
 
-    def default_state(self):
+    def state(self):
         return PhaseState(q=jnp.array([0.3, -0.2, 0.5]), p=jnp.array([0.1, 0.4, -0.3]))
 
 
@@ -101,3 +101,71 @@ def test_parameters_are_traceable():
     grad_m = jax.grad(lambda m: HarmonicOscillator(m=m).energy(
         PhaseState(q=jnp.zeros(1), p=jnp.ones(1))))(2.0)
     assert float(grad_m) == pytest.approx(-1 / 8)
+
+
+# ------------------------------------------------ initial states: model.state, not fields
+
+
+def test_oscillator_state_defaults_and_arguments():
+    """``state()``/``default_state()``: ``q0 = 1, p0 = 0`` (the paper's figures 1–3, the
+    class constants); numbers or shape-(1,) arrays are taken."""
+    model = HarmonicOscillator(m=2.0, k=3.0)
+    expected = PhaseState(q=jnp.array([HarmonicOscillator.DEFAULT_Q0]),
+                          p=jnp.array([HarmonicOscillator.DEFAULT_P0]))
+    assert (HarmonicOscillator.DEFAULT_Q0, HarmonicOscillator.DEFAULT_P0) == (1.0, 0.0)
+    for state in (model.state(), model.default_state()):
+        for a, b in zip(jax.tree.leaves(state), jax.tree.leaves(expected), strict=True):
+            np.testing.assert_array_equal(a, b)
+            assert a.dtype == jnp.float64 and a.shape == (1,)
+    s = model.state(q0=np.array([0.4]), p0=-0.9)
+    np.testing.assert_array_equal(s.q, [0.4])
+    np.testing.assert_array_equal(s.p, [-0.9])
+    model.check_state(s)
+
+
+@pytest.mark.parametrize(("kwargs", "match"), [
+    ({"q0": (1.0, 2.0)}, r"HarmonicOscillator: q0 must be a number \(shape \(\) or \(1,\)\)"),
+    ({"p0": float("nan")}, "HarmonicOscillator: p0 must be finite"),
+    ({"q0": float("inf")}, "HarmonicOscillator: q0 must be finite"),
+    ({"p0": "still"}, "HarmonicOscillator: p0 must be a number or an array"),
+])
+def test_oscillator_state_validates_its_arguments(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        HarmonicOscillator().state(**kwargs)
+
+
+def test_grad_and_vmap_through_the_oscillator_state():
+    """Derivatives with respect to the initial condition go through ``state``: the energy
+    ``p0²/(2m) + k q0²/2`` has gradient ``(k q0, p0/m)``; ``vmap`` over ``q0`` works."""
+    model = HarmonicOscillator(m=2.0, k=3.0)
+
+    def energy(x):
+        return model.energy(model.state(q0=x[0], p0=x[1]))
+
+    g = jax.grad(energy)(jnp.array([0.7, -1.1]))
+    np.testing.assert_allclose(np.asarray(g), [3.0 * 0.7, -1.1 / 2.0], rtol=1e-14)
+    qs = jax.vmap(lambda q: model.state(q0=q).q)(jnp.array([0.5, 2.0]))
+    np.testing.assert_array_equal(np.asarray(qs), [[0.5], [2.0]])
+
+
+@pytest.mark.parametrize("name", ["q0", "p0"])
+def test_oscillator_removed_keywords_say_where_they_go(name):
+    with pytest.raises(TypeError) as err:
+        HarmonicOscillator(m=1.0, **{name: 0.5})
+    assert str(err.value) == (f"HarmonicOscillator: {name} is an initial condition, not a "
+                              f"parameter: pass it to model.state({name}=...)")
+
+
+def test_oscillator_model_does_not_change_with_the_initial_condition():
+    import equinox as eqx
+
+    from lgvi_jax.scenes import get_scene
+
+    scene = get_scene("oscillator")
+    model_a, state_a = scene.build()
+    model_b, state_b = scene.build({"q0": 0.3, "p0": -2.0})
+    assert bool(eqx.tree_equal(model_a, model_b))
+    assert bool(eqx.tree_equal(model_a, HarmonicOscillator()))
+    np.testing.assert_array_equal(state_b.q, [0.3])
+    np.testing.assert_array_equal(state_b.p, [-2.0])
+    assert float(state_a.q[0]) == 1.0

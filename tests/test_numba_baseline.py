@@ -32,9 +32,9 @@ def _engine(model, method, s0, dt, n):
 @pytest.mark.parametrize("moving", [False, True])
 def test_numba_lgvi_matches_the_engine(moving):
     R0 = np.asarray(lj.so3.exp(np.array([0.3, -0.2, 1.0])))
-    model = lj.CarPendulum() if not moving else lj.CarPendulum(
-        v0=(1.5, -0.7), omega0=(1.0, -0.5, 3.0), R0=R0)
-    s0 = model.default_state()
+    model = lj.CarPendulum()
+    s0 = model.state() if not moving else model.state(v0=(1.5, -0.7), omega0=(1.0, -0.5, 3.0),
+                                                      R0=R0)
     params = nb.params_from_model(model)
     R, mu, q, p = (np.asarray(x) for x in (s0.R, s0.mu, s0.q, s0.p))
     R1, mu1, q1, p1, its, code = nb.rollout("lgvi", R, mu, q, p, 5e-3, 200, params)
@@ -80,14 +80,15 @@ def test_numba_hamel_matches_the_engine(name):
 
     # The paper's state and a moving cart (generic attitude, cart momentum); both scenes
     # share their parameters, so one batch holds both.
-    models = (lj.CarPendulum(), moving_scene())
+    moving = moving_scene()
+    models = (lj.CarPendulum(), moving.model)
+    states = (models[0].default_state(), moving.state0)
     params = nb.params_from_model(models[0])
     np.testing.assert_array_equal(nb.params_from_model(models[1]), params)
-    starts = [tuple(np.asarray(x) for x in (s.R, s.mu, s.q, s.p))
-              for s in (m.default_state() for m in models)]
+    starts = [tuple(np.asarray(x) for x in (s.R, s.mu, s.q, s.p)) for s in states]
     ends = []
-    for model, (R, mu, q, p) in zip(models, starts, strict=True):
-        ok, st, _ = _engine(model, lj.RIGID_METHODS[name](), model.default_state(), 5e-3, 200)
+    for model, s0, (R, mu, q, p) in zip(models, states, starts, strict=True):
+        ok, st, _ = _engine(model, lj.RIGID_METHODS[name](), s0, 5e-3, 200)
         assert ok
         ours = [np.asarray(x)[-1] for x in (st.R, st.mu, st.q, st.p)]
         ends.append(ours)
@@ -108,7 +109,7 @@ def test_numba_hamel_matches_the_engine(name):
     # same tolerance from different iterates; a single step agrees to ~1e-15, 200 steps
     # to the accumulated tolerance.
     model, (R, mu, q, p) = models[1], starts[1]
-    ok, st, _ = _engine(model, lj.RIGID_METHODS[name](), model.default_state(), 0.04, 200)
+    ok, st, _ = _engine(model, lj.RIGID_METHODS[name](), states[1], 0.04, 200)
     *theirs, its, code = nb.rollout(name, R, mu, q, p, 0.04, 200, params)
     assert ok and code == 0
     for a, b in zip((st.R, st.mu, st.q, st.p), theirs, strict=True):
@@ -162,9 +163,10 @@ def test_numba_diagnostics_equal_the_sweeps_on_the_same_states():
     from lgvi_jax.bench import numba_hamel as nh
     from lgvi_jax.reference import moving_scene
 
-    model = moving_scene()  # generic attitude, cart moving: every term of H is non-zero
+    scene = moving_scene()  # generic attitude, cart moving: every term of H is non-zero
+    model = scene.model
     # 201 states: every 10th of the first 2000 steps
-    ok, st, inv = _engine(model, lj.LGVI(), model.default_state(), 5e-3, 2000)
+    ok, st, inv = _engine(model, lj.LGVI(), scene.state0, 5e-3, 2000)
     assert ok
     R, mu, q, p = (np.ascontiguousarray(np.asarray(x)) for x in (st.R, st.mu, st.q, st.p))
     params = nb.params_from_model(model)

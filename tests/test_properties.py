@@ -475,10 +475,11 @@ _E = np.array([[1.0, 0.3, 0.0], [0.3, -0.5, 0.2], [0.0, 0.2, 0.7]])  # a symmetr
 def _rollout_loss(x):
     """A scalar of the final state of a heavy top started at R0 = identity, as a function
     of ``x = (omega0, a)``: the initial body angular velocity and a change ``a |J0| E`` of
-    the inertia about the pivot (the model's fields)."""
-    model = lj.HeavyTop(R0=np.eye(3), omega0=x[:3],
-                        J=_J0 + x[3] * np.linalg.norm(_J0) * _E)
-    traj = lj.simulate(model, lj.LGVI(), model.default_state(), ROLLOUT_DT, ROLLOUT_STEPS)
+    the inertia about the pivot (a field of the model; the initial velocity is an argument
+    of ``model.state``)."""
+    model = lj.HeavyTop(J=_J0 + x[3] * np.linalg.norm(_J0) * _E)
+    traj = lj.simulate(model, lj.LGVI(), model.state(R0=np.eye(3), omega0=x[:3]), ROLLOUT_DT,
+                       ROLLOUT_STEPS)
     final = jax.tree.map(lambda y: y[-1], traj.state)
     return jnp.sum(_C * final.R) + jnp.dot(_c3, final.mu)
 
@@ -491,5 +492,5 @@ _ROLLOUT = (jax.jit(_rollout_loss), jax.jit(jax.grad(_rollout_loss)),
 def test_gradients_through_a_heavy_top_rollout(omega_scale):
     """With respect to omega0 (at the default spin, at 1e-8 of it and at rest: the
     rotations of the first steps are then at or near the identity) and to the inertia."""
-    x = np.concatenate([omega_scale * np.asarray(lj.HeavyTop().omega0), [0.0]])
+    x = np.concatenate([omega_scale * np.asarray(lj.HeavyTop.DEFAULT_OMEGA0), [0.0]])
     _check_gradient(_rollout_loss, x, FD_STEP, FD_RTOL, compiled=_ROLLOUT)

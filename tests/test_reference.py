@@ -1,7 +1,8 @@
 r"""The car-pendulum against an independent reference: the hand-derived continuous equations
 of :mod:`lgvi_jax.reference` (the derivation is in its docstring), in plain NumPy,
 integrated by SciPy's DOP853 at ``rtol = atol = 1e-13``. The reference uses only the model's
-parameters and initial velocities; the library enters only as the system under test.
+parameters and the initial configuration and velocities; the library enters only as the
+system under test.
 """
 
 from __future__ import annotations
@@ -37,13 +38,14 @@ case_params = pytest.mark.parametrize("case", list(CASES), indirect=True)
 
 @pytest.fixture(scope="module")
 def case(request):
-    """``(model, reference, ys, y_T)``: the reference at its steps on ``[0, T_REF]`` and at
-    ``T_ORDER``, computed once per initial state."""
-    model = CASES[request.param]()
-    ref = HandReference(model)
+    """``(model, state0, reference, ys, y_T)``: the library's model and initial state, the
+    reference at its steps on ``[0, T_REF]`` and at ``T_ORDER``, computed once per initial
+    state."""
+    scene = CASES[request.param]()
+    ref = scene.reference()
     _, ys = ref.solve(T_REF)
     _, ys_order = ref.solve(T_ORDER)
-    return model, ref, ys, ys_order[-1]
+    return scene.model, scene.state0, ref, ys, ys_order[-1]
 
 
 def config_error(state, y):
@@ -88,7 +90,7 @@ def test_reference_conserves_its_invariants(case):
     """Energy, cart momentum and vertical angular momentum (all by hand) are conserved by
     the reference on [0, 2]: a check of the derivation (a sign error in ``τ`` or in the
     mass matrix breaks them at O(1)) and of the solver's accuracy."""
-    _, ref, ys, _ = case
+    _, _, ref, ys, _ = case
     E = np.array([ref.energy(y) for y in ys])
     p = np.array([ref.momenta(y)[1] for y in ys])
     lz = np.array([ref.angular_momentum_z(y) for y in ys])
@@ -112,8 +114,7 @@ def test_library_model_agrees_with_hand_formulas(case):
     """At t = 0 the library's momenta, energy and invariants (autodiff) equal the hand
     formulas; along the reference trajectory its vector field equals ``(Rω̂, Π×ω + τ, v,
     0)``. This checks the model's kinetic/potential energies against eq. (38)-(39)."""
-    model, ref, ys, _ = case
-    s0 = model.default_state()
+    model, s0, ref, ys, _ = case
     Pi, p = ref.momenta(ys[0])
     # Same formulas, evaluated in a different order: agreement to a few ulps of O(1) numbers.
     np.testing.assert_allclose(np.asarray(s0.mu), Pi, rtol=1e-13, atol=1e-13)
@@ -149,8 +150,8 @@ def test_initial_states_are_the_intended_ones():
     """The paper's initial state has zero horizontal momentum; the second case does not
     (so cart momentum conservation is really exercised)."""
     for name, p_is_zero in (("paper", True), ("moving", False)):
-        model = CASES[name]()
-        _, p = HandReference(model).momenta(HandReference(model).y0)
+        ref = CASES[name]().reference()
+        _, p = ref.momenta(ref.y0)
         if p_is_zero:
             # p = (2·0.525 − 1.05, 2·(−0.0125) + 0.025) = 0 up to rounding of the data.
             assert np.max(np.abs(p)) <= 1e-15
@@ -165,9 +166,9 @@ def test_initial_states_are_the_intended_ones():
 def test_rk4_with_tiny_step_matches_reference(case):
     """The library's RK4 (on its autodiff equations of motion) with h = 1e-4 reproduces the
     hand-derived reference at t = 2: validates the library's mechanics end to end."""
-    model, _, ys, _ = case
+    model, s0, _, ys, _ = case
     h = 1e-4
-    state = run_to(model, L.RIGID_METHODS["rk4"](), model.default_state(), h,
+    state = run_to(model, L.RIGID_METHODS["rk4"](), s0, h,
                    round(T_REF / h))
     # RK4's global error ~ C h^4 with C ~ 1e4..1e5 here (measured at larger h): ~1e-12,
     # plus ~1e-13 of reference error and of round-off over 2e4 steps.
@@ -178,9 +179,8 @@ def test_rk4_with_tiny_step_matches_reference(case):
 def errors(case):
     """Configuration error at ``T_ORDER`` and energy error (max over the checkpoints) for
     every method and step, against the reference."""
-    model, ref, ys, y_T = case
+    model, s0, ref, ys, y_T = case
     E0 = ref.energy(ys[0])  # the exact flow's energy; equals model.energy(s0) (tested)
-    s0 = model.default_state()
     out = {}
     for name in ALL_METHODS:
         method = L.RIGID_METHODS[name]()

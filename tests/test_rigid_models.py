@@ -1,6 +1,9 @@
 """Rigid-body models: the mechanics derived by autodiff against hand-written formulas (the
 paper's eqs. 38–39, Euler's equations, the heavy-top torque), and input validation."""
 
+import dataclasses
+
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -10,7 +13,7 @@ import lgvi_jax  # noqa: F401  (float64)
 from lgvi_jax import so3
 from lgvi_jax.models import CarPendulum, FreeRigidBody, HeavyTop, RigidState
 from lgvi_jax.models.rigid import check_inertia, left_gradient
-from lgvi_jax.models.rigid_bodies import rotational_kinetic
+from lgvi_jax.models.rigid_bodies import PAPER_OMEGA0, PAPER_R0, rotational_kinetic
 
 E3 = np.array([0.0, 0.0, 1.0])
 P = np.array([[1.0, 0, 0], [0, 1.0, 0]])
@@ -166,10 +169,10 @@ def test_check_inertia_refuses_unphysical(J, message):
 
 
 def test_models_validate_inputs():
-    with pytest.raises(ValueError, match="R0 is not in SO"):
-        CarPendulum(R0=np.diag([1.0, 1.0, -1.0]))
-    with pytest.raises(ValueError, match="q0 must have shape"):
-        CarPendulum(q0=(1.0, 2.0, 3.0))
+    with pytest.raises(ValueError, match="CarPendulum: R0 is not in SO"):
+        CarPendulum().state(R0=np.diag([1.0, 1.0, -1.0]))
+    with pytest.raises(ValueError, match="CarPendulum: q0 must have shape"):
+        CarPendulum().state(q0=(1.0, 2.0, 3.0))
     with pytest.raises(ValueError, match="g must be finite and >= 0"):
         HeavyTop(g=-1.0)
     with pytest.raises(ValueError, match="M must be finite and > 0"):
@@ -197,3 +200,156 @@ def test_models_are_differentiable_and_vmappable_in_parameters():
     energies = jax.vmap(energy)(jnp.array([0.5, 1.0, 2.0]))
     assert energies.shape == (3,)
     assert float(energies[1]) == pytest.approx(float(energy(1.0)), rel=1e-15)
+
+
+# ------------------------------------------------ initial states: model.state, not fields
+
+RIGID_MODELS = {"free-rigid-body": FreeRigidBody, "heavy-top": HeavyTop,
+                "car-pendulum": CarPendulum}
+
+
+@pytest.mark.parametrize("name", list(RIGID_MODELS))
+def test_default_state_is_the_default_initial_condition(name):
+    """``state()`` and ``default_state()`` are the state of the class's default initial
+    condition (the paper's for the top and the car-pendulum), built by the model's
+    Legendre map from the configuration and velocities."""
+    cls = RIGID_MODELS[name]
+    model = cls()
+    empty = np.zeros(0)
+    q0 = getattr(cls, "DEFAULT_Q0", empty)
+    v0 = getattr(cls, "DEFAULT_V0", empty)
+    expected = model.state_from_velocities(np.asarray(cls.DEFAULT_R0), cls.DEFAULT_OMEGA0,
+                                           q0, v0)
+    for state in (model.state(), model.default_state()):
+        for a, b in zip(jax.tree.leaves(state), jax.tree.leaves(expected), strict=True):
+            np.testing.assert_array_equal(a, b)
+    # The defaults are the ones the models carried before (the paper's for the top and
+    # the car-pendulum; near the intermediate axis for the free body).
+    if name == "free-rigid-body":
+        np.testing.assert_array_equal(cls.DEFAULT_R0, np.eye(3))
+        assert cls.DEFAULT_OMEGA0 == (0.1, 1.0, 0.1)
+    else:
+        assert (cls.DEFAULT_R0, cls.DEFAULT_OMEGA0) == (PAPER_R0, PAPER_OMEGA0)
+    if name == "car-pendulum":
+        assert (cls.DEFAULT_Q0, cls.DEFAULT_V0) == ((-0.125, -0.0125), (0.525, -0.0125))
+        # Written out: the paper's state, eq. 39 at (PAPER_R0, PAPER_OMEGA0, q0, v0).
+        R, w = np.asarray(PAPER_R0), np.asarray(PAPER_OMEGA0)
+        v = np.asarray(cls.DEFAULT_V0)
+        rho, J = np.asarray(model.rho_c), np.asarray(model.J)
+        np.testing.assert_allclose(model.state().mu, J @ w + np.cross(rho, R.T @ P.T @ v),
+                                   rtol=1e-14, atol=1e-15)
+        np.testing.assert_allclose(model.state().p, 2 * v + P @ R @ np.cross(w, rho),
+                                   atol=1e-15)
+
+
+def test_state_takes_each_initial_condition():
+    """Each argument of ``state`` is used: the same as ``state_from_velocities`` with it."""
+    model = CarPendulum()
+    R0 = so3.exp(jnp.array([0.6, -0.9, 0.4]))
+    kwargs = {"R0": R0, "omega0": (1.0, -0.5, 3.0), "q0": (0.7, -0.4), "v0": (0.8, -0.3)}
+    state = model.state(**kwargs)
+    expected = model.state_from_velocities(R0, jnp.array(kwargs["omega0"]),
+                                           jnp.array(kwargs["q0"]), jnp.array(kwargs["v0"]))
+    for a, b in zip(jax.tree.leaves(state), jax.tree.leaves(expected), strict=True):
+        np.testing.assert_array_equal(a, b)
+    top = HeavyTop()
+    s = top.state(R0=np.eye(3), omega0=(0.0, 0.0, 2.0))
+    np.testing.assert_array_equal(s.R, np.eye(3))
+    np.testing.assert_allclose(s.mu, np.asarray(top.J) @ np.array([0.0, 0.0, 2.0]),
+                               rtol=1e-15)
+
+
+@pytest.mark.parametrize("name", list(RIGID_MODELS))
+def test_grad_through_state_matches_finite_differences(name):
+    """``jax.grad`` of the energy with respect to ``omega0``, through ``state`` (whose
+    checks are skipped under tracing), equals central differences; also under ``jit``, and
+    ``vmap`` over initial velocities gives the single states."""
+    model = RIGID_MODELS[name]()
+
+    def energy(omega0):
+        return model.energy(model.state(omega0=omega0))
+
+    w = jnp.array([0.3, -0.7, 1.9])
+    g = np.asarray(jax.grad(energy)(w))
+    np.testing.assert_allclose(np.asarray(jax.jit(jax.grad(energy))(w)), g, rtol=1e-14,
+                               atol=1e-15)
+    eps = 1e-6
+    fd = np.array([(energy(w.at[i].add(eps)) - energy(w.at[i].add(-eps))) / (2 * eps)
+                   for i in range(3)])
+    # The energy is quadratic in omega0: central differences are exact but for rounding
+    # (~eps_machine |E| / 1e-6 ~ 1e-10 relative).
+    np.testing.assert_allclose(g, fd, rtol=1e-7, atol=1e-9)
+    # ... and g = J_eff ω0 is not trivially zero.
+    assert np.linalg.norm(g) > 0.1
+    batch = jnp.stack([w, 2 * w])
+    states = jax.vmap(lambda x: model.state(omega0=x))(batch)
+    for i in range(2):
+        single = model.state(omega0=batch[i])
+        for a, b in zip(jax.tree.leaves(states), jax.tree.leaves(single), strict=True):
+            np.testing.assert_allclose(a[i], b, rtol=1e-14, atol=1e-15)
+
+
+@pytest.mark.parametrize(("cls", "name", "value"), [
+    (CarPendulum, "omega0", (1.0, 0.0, 0.0)), (CarPendulum, "R0", np.eye(3)),
+    (CarPendulum, "q0", (0.0, 0.0)), (CarPendulum, "v0", (0.0, 0.0)),
+    (HeavyTop, "omega0", (1.0, 0.0, 0.0)), (HeavyTop, "R0", np.eye(3)),
+    (FreeRigidBody, "omega0", (1.0, 0.0, 0.0)), (FreeRigidBody, "R0", np.eye(3)),
+])
+def test_removed_initial_condition_keywords_say_where_they_go(cls, name, value):
+    msg = (f"{cls.__name__}: {name} is an initial condition, not a parameter: pass it to "
+           f"model.state({name}=...)")
+    with pytest.raises(TypeError) as err:
+        cls(**{name: value})
+    assert str(err.value) == msg
+    with pytest.raises(TypeError, match="unexpected keyword argument 'omega'"):
+        cls(omega=(1.0, 0.0, 0.0))
+
+
+@pytest.mark.parametrize(("kwargs", "match"), [
+    ({"R0": np.diag([1.0, 1.0, -1.0])}, "CarPendulum: R0 is not in SO\\(3\\)"),
+    ({"R0": 1.01 * np.eye(3)}, "CarPendulum: R0 is not in SO\\(3\\)"),
+    ({"R0": np.eye(2)}, "CarPendulum: R0 must be a 3x3 matrix"),
+    ({"omega0": (1.0, 2.0)}, "CarPendulum: omega0 must have shape \\(3,\\)"),
+    ({"omega0": (np.nan, 0.0, 0.0)}, "CarPendulum: omega0 must be finite"),
+    ({"q0": (1.0, 2.0, 3.0)}, "CarPendulum: q0 must have shape \\(2,\\)"),
+    ({"v0": (np.inf, 0.0)}, "CarPendulum: v0 must be finite"),
+    ({"omega0": "fast"}, "CarPendulum: omega0 must be a number or an array"),
+])
+def test_state_validates_its_arguments(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        CarPendulum().state(**kwargs)
+
+
+def test_free_body_and_top_states_validate_their_arguments():
+    for cls in (FreeRigidBody, HeavyTop):
+        with pytest.raises(ValueError, match=f"{cls.__name__}: R0 is not in SO"):
+            cls().state(R0=np.diag([1.0, -1.0, -1.0]) * 2)
+        with pytest.raises(ValueError, match=f"{cls.__name__}: omega0 must have shape"):
+            cls().state(omega0=np.zeros(4))
+        with pytest.raises(ValueError, match=f"{cls.__name__}: omega0 must be finite"):
+            cls().state(omega0=(0.0, np.nan, 0.0))
+
+
+@pytest.mark.parametrize("system", ["free-rigid-body", "heavy-top", "car-pendulum"])
+def test_a_model_does_not_change_with_the_initial_condition(system):
+    """The model is its parameters only: scenes built with different initial conditions
+    give equal models (the same pytree, leaves equal) and different states; no field is an
+    initial condition."""
+    from lgvi_jax.scenes import get_scene
+
+    scene = get_scene(system)
+    overrides = {"omega0": np.array([1.0, -0.5, 3.0]),
+                 "R0": np.ravel(np.asarray(so3.exp(jnp.array([0.6, -0.9, 0.4]))))}
+    if system == "car-pendulum":
+        overrides.update(q0=np.array([0.7, -0.4]), v0=np.array([0.8, -0.3]))
+    model_a, state_a = scene.build()
+    model_b, state_b = scene.build(overrides)
+    assert bool(eqx.tree_equal(model_a, model_b))
+    assert jax.tree.structure(model_a) == jax.tree.structure(RIGID_MODELS[system]())
+    assert bool(eqx.tree_equal(model_a, RIGID_MODELS[system]()))
+    assert not np.array_equal(np.asarray(state_a.mu), np.asarray(state_b.mu))
+    fields = {f.name for f in dataclasses.fields(model_a)}
+    assert not fields & {"R0", "omega0", "q0", "v0"}, fields
+    # A parameter does change the model.
+    model_c, _ = scene.build({"J": np.ravel(np.diag([1.0, 1.5, 2.0]))})
+    assert not bool(eqx.tree_equal(model_a, model_c))

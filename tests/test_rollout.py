@@ -17,8 +17,8 @@ N = 40
 
 @pytest.fixture
 def setup():
-    model = lj.HarmonicOscillator(m=1.3, k=0.7, q0=0.4, p0=-0.9)
-    return model, lj.GaussLegendre(), model.default_state()
+    model = lj.HarmonicOscillator(m=1.3, k=0.7)
+    return model, lj.GaussLegendre(), model.state(q0=0.4, p0=-0.9)
 
 
 def _leaves(carry):

@@ -419,7 +419,7 @@ class SpringTop(AbstractRigidBodyModel):
     def potential(self, R, q):
         return 0.5 * self.k * q[0] ** 2 - 9.81 * self.m * (q[0] + (R @ self.rho)[2])
 
-    def default_state(self):
+    def state(self):
         R0 = so3.exp(jnp.array([0.3, -0.2, 0.1]))
         return self.state_from_velocities(R0, jnp.array([0.5, -1.0, 4.0]), jnp.array([0.1]),
                                           jnp.array([0.0]))

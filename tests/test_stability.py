@@ -13,8 +13,8 @@ from lgvi_jax.trajectory import RESULTS
 
 @pytest.fixture(scope="module")
 def oscillator():
-    model = lj.HarmonicOscillator(m=1.0, k=1.0, q0=1.0, p0=0.0)
-    return model, model.default_state()
+    model = lj.HarmonicOscillator(m=1.0, k=1.0)
+    return model, model.state(q0=1.0, p0=0.0)
 
 
 @pytest.mark.parametrize(("method", "unstable", "stable"),

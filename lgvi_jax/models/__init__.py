@@ -1,4 +1,5 @@
-"""Models: each defines only its energies, default state and invariants."""
+"""Models: each defines only its energies (its fields are its parameters), ``state(...)``, the
+initial state from an initial condition, and its invariants."""
 
 from .base import AbstractEuclideanModel, PhaseState
 from .oscillator import HarmonicOscillator

@@ -1,8 +1,11 @@
 r"""Models on a Euclidean configuration space :math:`\mathbb{R}^n`.
 
-A model is an ``eqx.Module`` whose fields are its physical parameters. It defines only its
-energies, ``kinetic(q, v)`` and ``potential(q)``, its default initial state and (optionally)
-extra invariants; the mechanics the integrators need is derived here by autodiff:
+A model is an ``eqx.Module`` whose fields are its physical parameters, and only those: the
+initial state belongs to the problem, built by the model's ``state(...)`` from initial
+positions and momenta or velocities (``default_state()`` is ``state()`` with the model's
+default initial condition). A model defines only its energies, ``kinetic(q, v)`` and
+``potential(q)``, ``state`` and (optionally) extra invariants; the mechanics the integrators
+need is derived here by autodiff:
 
 .. math::
     L(q, v) = T(q, v) - U(q), \qquad p = \partial L / \partial v, \qquad
@@ -27,6 +30,23 @@ from .._checks import check_float64_finite
 from ..linalg import small_solve
 
 
+def reject_removed_keywords(owner: str, kwargs: dict, initial_conditions: tuple[str, ...]
+                            ) -> None:
+    """Refuse keywords a model's constructor no longer takes: an initial condition (now an
+    argument of ``model.state``) with a ``TypeError`` that says where it goes, anything else
+    with Python's usual message."""
+    for name in kwargs:
+        if name in initial_conditions:
+            raise TypeError(
+                f"{owner}: {name} is an initial condition, not a parameter: pass it to "
+                f"model.state({name}=...)"
+            )
+    if kwargs:
+        raise TypeError(
+            f"{owner}.__init__() got an unexpected keyword argument {next(iter(kwargs))!r}"
+        )
+
+
 class PhaseState(eqx.Module):
     """A point of phase space: generalised positions ``q`` and canonical momenta ``p``,
     each of shape ``(n,)`` (with leading batch/time axes in trajectories)."""
@@ -40,7 +60,9 @@ class AbstractEuclideanModel(eqx.Module):
 
     Subclasses set ``dof`` and ``separable`` (kinetic energy independent of ``q``, which
     explicit splitting methods such as Störmer–Verlet require) and implement
-    :meth:`kinetic`, :meth:`potential` and :meth:`default_state`.
+    :meth:`kinetic`, :meth:`potential` and :meth:`state`. The fields are the physical
+    parameters only: the initial condition is an argument of :meth:`state`, not part of
+    the model.
     """
 
     dof: ClassVar[int]
@@ -55,8 +77,15 @@ class AbstractEuclideanModel(eqx.Module):
         """Potential energy ``U(q)``."""
 
     @abc.abstractmethod
+    def state(self, *args, **kwargs) -> PhaseState:
+        """The initial state built from the model's initial-condition arguments (each
+        defaulting to the model's default initial condition), validated on concrete values;
+        usable under ``jit``/``vmap``/``grad``."""
+
     def default_state(self) -> PhaseState:
-        """The scene's default initial state."""
+        """Convenience: ``self.state()``, the model's default initial condition (the
+        paper's, where there is one)."""
+        return self.state()
 
     # --- mechanics derived by autodiff -------------------------------------------------
 

@@ -7,8 +7,8 @@ from typing import ClassVar
 import jax
 import jax.numpy as jnp
 
-from .._checks import as_float_array, check_positive
-from .base import AbstractEuclideanModel, PhaseState
+from .._checks import as_float_array, check_finite, check_positive
+from .base import AbstractEuclideanModel, PhaseState, reject_removed_keywords
 
 
 class HarmonicOscillator(AbstractEuclideanModel):
@@ -17,23 +17,24 @@ class HarmonicOscillator(AbstractEuclideanModel):
     Exact flow, with :math:`\omega = \sqrt{k/m}`:
     :math:`q(t) = q_0 \cos\omega t + \tfrac{p_0}{m\omega}\sin\omega t`,
     :math:`p(t) = p_0 \cos\omega t - m\omega q_0 \sin\omega t`.
-    Default state ``q0 = 1, p0 = 0`` (the paper's figures 1–3).
+    The initial state is :meth:`state`'s, default ``q0 = 1, p0 = 0`` (the paper's
+    figures 1–3).
     """
 
     m: jax.Array
     k: jax.Array
-    q0: jax.Array
-    p0: jax.Array
 
     dof: ClassVar[int] = 1
     separable: ClassVar[bool] = True
+    #: The default initial condition (the paper's figures 1–3).
+    DEFAULT_Q0: ClassVar[float] = 1.0
+    DEFAULT_P0: ClassVar[float] = 0.0
 
-    def __init__(self, m=1.0, k=1.0, q0=1.0, p0=0.0):
+    def __init__(self, m=1.0, k=1.0, **removed):
         owner = "HarmonicOscillator"
+        reject_removed_keywords(owner, removed, ("q0", "p0"))
         self.m = as_float_array("m", m, owner)
         self.k = as_float_array("k", k, owner)
-        self.q0 = as_float_array("q0", q0, owner)
-        self.p0 = as_float_array("p0", p0, owner)
 
     def __check_init__(self):
         check_positive("m", self.m, "HarmonicOscillator")
@@ -50,8 +51,20 @@ class HarmonicOscillator(AbstractEuclideanModel):
     def potential(self, q):
         return 0.5 * self.k * jnp.sum(q**2)
 
-    def default_state(self) -> PhaseState:
-        return PhaseState(q=jnp.reshape(self.q0, (1,)), p=jnp.reshape(self.p0, (1,)))
+    def state(self, q0=DEFAULT_Q0, p0=DEFAULT_P0) -> PhaseState:
+        """The state with position ``q0`` and momentum ``p0`` (numbers, or arrays of shape
+        ``(1,)``; default the class constants :attr:`DEFAULT_Q0`, :attr:`DEFAULT_P0`).
+        ``ValueError`` naming the argument for a wrong shape or a non-finite value (checked
+        on concrete values only: ``jit``, ``vmap`` and ``grad`` trace through)."""
+        owner = "HarmonicOscillator"
+        q0 = as_float_array("q0", q0, owner)
+        p0 = as_float_array("p0", p0, owner)
+        for name, value in (("q0", q0), ("p0", p0)):
+            if jnp.shape(value) not in ((), (1,)):
+                raise ValueError(f"{owner}: {name} must be a number (shape () or (1,)), got "
+                                 f"shape {jnp.shape(value)}")
+            check_finite(name, value, owner)
+        return PhaseState(q=jnp.reshape(q0, (1,)), p=jnp.reshape(p0, (1,)))
 
     def exact(self, state0: PhaseState, t: jax.Array) -> PhaseState:
         """The exact solution at times ``t`` (any shape) from ``state0``; q, p have shape

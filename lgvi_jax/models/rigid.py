@@ -1,7 +1,9 @@
 r"""Models on :math:`SO(3) \times \mathbb{R}^n`: a rigid body, possibly coupled to ``n``
 Euclidean coordinates (a cart, ...).
 
-A model is an ``eqx.Module`` whose fields are its physical parameters. It defines only
+A model is an ``eqx.Module`` whose fields are its physical parameters (the initial state
+belongs to the problem: ``model.state(R0=..., omega0=..., ...)`` builds it from an initial
+configuration and velocities, ``model.default_state()`` is ``model.state()``). It defines only
 
 * ``kinetic(R, Omega, q, v)``: the kinetic energy, with ``Omega`` a 3x3 **matrix** body
   velocity. Write rotational terms in matrix form, ``½ tr(Ω J_d Ωᵀ)`` with
@@ -10,7 +12,9 @@ A model is an ``eqx.Module`` whose fields are its physical parameters. It define
   part of the general Lie group variational integrator (``lgvi``), so one formula serves
   every method;
 * ``potential(R, q)``;
-* ``default_state()`` and its invariants (energy and momentum maps).
+* ``state(...)``, the initial state from initial configuration and velocities
+  (through :meth:`AbstractRigidBodyModel.state_from_velocities`), and its
+  invariants (energy and momentum maps).
 
 Everything else is derived here by autodiff. With the body angular velocity ``ω``
 (``Ṙ = R hat(ω)``) and ``L(R, ω, q, v) = T(R, hat(ω), q, v) − U(R, q)``:
@@ -110,8 +114,9 @@ class AbstractRigidBodyModel(eqx.Module):
     """A Lagrangian system on :math:`SO(3) \\times \\mathbb{R}^n` defined by its energies.
 
     Subclasses set ``dof`` (``n``) and implement :meth:`kinetic`, :meth:`potential`,
-    :meth:`default_state` and, usually, :meth:`invariants` (extending the energy with the
-    model's momentum maps).
+    :meth:`state` and, usually, :meth:`invariants` (extending the energy with the
+    model's momentum maps). The fields are the physical parameters only: the initial
+    condition is an argument of :meth:`state`, not part of the model.
     """
 
     dof: ClassVar[int]
@@ -126,8 +131,15 @@ class AbstractRigidBodyModel(eqx.Module):
         """Potential energy ``U(R, q)``."""
 
     @abc.abstractmethod
+    def state(self, *args, **kwargs) -> RigidState:
+        """The initial state from the initial configuration and velocities (each defaulting
+        to the model's default initial condition), validated on concrete values; usable under
+        ``jit``/``vmap``/``grad``."""
+
     def default_state(self) -> RigidState:
-        """The scene's default initial state."""
+        """Convenience: ``self.state()``, the model's default initial condition (the
+        paper's, where there is one)."""
+        return self.state()
 
     # --- mechanics derived by autodiff -------------------------------------------------
 

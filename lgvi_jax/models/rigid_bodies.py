@@ -1,7 +1,9 @@
 r"""Rigid-body scenes: free rigid body, heavy top, and the paper's 3D car-pendulum.
 
 Each defines only its energies (in the matrix form of :mod:`lgvi_jax.models.rigid`), its
-default state and its invariants. Conventions: ``R`` maps body to inertial coordinates,
+``state(...)`` (the initial state from an initial attitude and velocities, defaulting to the
+model's default initial condition: class constants, not fields) and its invariants. The
+fields are the physical parameters only. Conventions: ``R`` maps body to inertial coordinates,
 ``ω`` is the body angular velocity, and ``e3 = (0, 0, 1)`` points **down**, along gravity
 (as in the paper), so the potential of a mass centre at body point ``ρ_c`` is
 ``U = −m g e3ᵀ R ρ_c``.
@@ -18,6 +20,7 @@ import numpy as np
 from .. import so3
 from .._checks import as_float_array, check_nonnegative, check_positive, is_concrete
 from ..linalg import spd_solve
+from .base import reject_removed_keywords
 from .rigid import AbstractRigidBodyModel, RigidState, check_inertia
 
 __all__ = ["CarPendulum", "FreeRigidBody", "HeavyTop", "rotational_kinetic"]
@@ -41,12 +44,12 @@ def rotational_kinetic(J: jax.Array, Omega: jax.Array) -> jax.Array:
 
 
 def _check_rotation(name: str, R, owner: str) -> None:
+    if jnp.shape(R) != (3, 3):
+        raise ValueError(f"{owner}: {name} must be a 3x3 matrix (9 numbers), got shape "
+                         f"{jnp.shape(R)}")
     if not is_concrete(R):
         return
     arr = np.asarray(R)
-    if arr.shape != (3, 3):
-        raise ValueError(f"{owner}: {name} must be a 3x3 matrix (9 numbers), got shape "
-                         f"{arr.shape}")
     if not so3.is_rotation(arr, atol=1e-9):
         err = float(so3.orthogonality_error(arr)) if np.all(np.isfinite(arr)) else float("nan")
         det = float(np.linalg.det(arr)) if np.all(np.isfinite(arr)) else float("nan")
@@ -66,6 +69,22 @@ def _check_finite(name: str, value, owner: str) -> None:
         raise ValueError(f"{owner}: {name} must be finite, got {np.asarray(value).tolist()}")
 
 
+def _initial_state(model: AbstractRigidBodyModel, owner: str, R0, omega0, q0=(), v0=()
+                   ) -> RigidState:
+    """``model.state_from_velocities(R0, omega0, q0, v0)`` after validating the arguments
+    (shapes always, SO(3) and finiteness on concrete values), each error naming it."""
+    R0 = as_float_array("R0", R0, owner)
+    _check_rotation("R0", R0, owner)
+    values = {"omega0": (omega0, (3,)), "q0": (q0, (model.dof,)), "v0": (v0, (model.dof,))}
+    arrays = {}
+    for name, (value, shape) in values.items():
+        arr = as_float_array(name, value, owner)
+        _check_shape(name, arr, shape, owner)
+        _check_finite(name, arr, owner)
+        arrays[name] = arr
+    return model.state_from_velocities(R0, arrays["omega0"], arrays["q0"], arrays["v0"])
+
+
 def _gravity_potential(m, g, rho_c, R):
     return -m * g * jnp.dot(jnp.asarray(E3, R.dtype), R @ rho_c)
 
@@ -74,29 +93,25 @@ class FreeRigidBody(AbstractRigidBodyModel):
     r"""A free rigid body: :math:`L = \tfrac12\omega^\top J\omega`, no potential.
 
     Invariants: energy and the spatial angular momentum :math:`R J\omega` (3 numbers,
-    conserved by rotational symmetry :math:`R \mapsto QR`). Default: ``J = diag(2, 3, 4)``,
-    ``R0 = I``, ``ω0 = (0.1, 1.0, 0.1)``: close to a steady spin about the intermediate
-    axis, which is unstable (the tennis-racket flips).
+    conserved by rotational symmetry :math:`R \mapsto QR`). Default: ``J = diag(2, 3, 4)``
+    and (:meth:`state`) ``R0 = I``, ``ω0 = (0.1, 1.0, 0.1)``: close to a steady spin about
+    the intermediate axis, which is unstable (the tennis-racket flips).
     """
 
     J: jax.Array
-    R0: jax.Array
-    omega0: jax.Array
 
     dof: ClassVar[int] = 0
+    #: The default initial condition: identity attitude, near the intermediate axis.
+    DEFAULT_R0: ClassVar[tuple] = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
+    DEFAULT_OMEGA0: ClassVar[tuple] = (0.1, 1.0, 0.1)
 
-    def __init__(self, J=((2.0, 0, 0), (0, 3.0, 0), (0, 0, 4.0)), R0=None, omega0=(0.1, 1.0, 0.1)):
+    def __init__(self, J=((2.0, 0, 0), (0, 3.0, 0), (0, 0, 4.0)), **removed):
         owner = "FreeRigidBody"
+        reject_removed_keywords(owner, removed, ("R0", "omega0"))
         self.J = as_float_array("J", J, owner)
-        self.R0 = as_float_array("R0", np.eye(3) if R0 is None else R0, owner)
-        self.omega0 = as_float_array("omega0", omega0, owner)
 
     def __check_init__(self):
-        owner = "FreeRigidBody"
-        check_inertia("J", self.J, owner)
-        _check_rotation("R0", self.R0, owner)
-        _check_shape("omega0", self.omega0, (3,), owner)
-        _check_finite("omega0", self.omega0, owner)
+        check_inertia("J", self.J, "FreeRigidBody")
 
     def kinetic(self, R, Omega, q, v):
         return rotational_kinetic(self.J, Omega)
@@ -104,9 +119,12 @@ class FreeRigidBody(AbstractRigidBodyModel):
     def potential(self, R, q):
         return jnp.zeros((), R.dtype)
 
-    def default_state(self) -> RigidState:
-        empty = jnp.zeros((0,), jnp.float64)
-        return self.state_from_velocities(self.R0, self.omega0, empty, empty)
+    def state(self, R0=DEFAULT_R0, omega0=DEFAULT_OMEGA0) -> RigidState:
+        """The state with attitude ``R0`` (3x3, in SO(3)) and body angular velocity
+        ``omega0`` (3,); defaults :attr:`DEFAULT_R0`, :attr:`DEFAULT_OMEGA0`. ``ValueError``
+        naming the argument otherwise (SO(3) and finiteness checked on concrete values only:
+        ``jit``, ``vmap`` and ``grad`` trace through)."""
+        return _initial_state(self, "FreeRigidBody", R0, omega0)
 
     def invariants(self, state: RigidState) -> dict[str, jax.Array]:
         return {
@@ -122,27 +140,27 @@ class HeavyTop(AbstractRigidBodyModel):
     ``J`` is the inertia about the pivot and ``ρ_c`` the pivot-to-mass-centre vector in the
     body frame. Invariants: energy and the vertical angular momentum :math:`e_3^\top R J
     \omega` (symmetry: rotations about the vertical through the pivot). Defaults: the
-    paper's pendulum without its cart.
+    paper's pendulum without its cart, and (:meth:`state`) its initial attitude and
+    angular velocity.
     """
 
     J: jax.Array
     m: jax.Array
     g: jax.Array
     rho_c: jax.Array
-    R0: jax.Array
-    omega0: jax.Array
 
     dof: ClassVar[int] = 0
+    #: The default initial condition: the paper's.
+    DEFAULT_R0: ClassVar[tuple] = PAPER_R0
+    DEFAULT_OMEGA0: ClassVar[tuple] = PAPER_OMEGA0
 
-    def __init__(self, J=PAPER_J, m=1.0, g=9.81, rho_c=PAPER_RHO_C, R0=PAPER_R0,
-                 omega0=PAPER_OMEGA0):
+    def __init__(self, J=PAPER_J, m=1.0, g=9.81, rho_c=PAPER_RHO_C, **removed):
         owner = "HeavyTop"
+        reject_removed_keywords(owner, removed, ("R0", "omega0"))
         self.J = as_float_array("J", J, owner)
         self.m = as_float_array("m", m, owner)
         self.g = as_float_array("g", g, owner)
         self.rho_c = as_float_array("rho_c", rho_c, owner)
-        self.R0 = as_float_array("R0", R0, owner)
-        self.omega0 = as_float_array("omega0", omega0, owner)
 
     def __check_init__(self):
         owner = "HeavyTop"
@@ -151,9 +169,6 @@ class HeavyTop(AbstractRigidBodyModel):
         check_nonnegative("g", self.g, owner)
         _check_shape("rho_c", self.rho_c, (3,), owner)
         _check_finite("rho_c", self.rho_c, owner)
-        _check_rotation("R0", self.R0, owner)
-        _check_shape("omega0", self.omega0, (3,), owner)
-        _check_finite("omega0", self.omega0, owner)
 
     def kinetic(self, R, Omega, q, v):
         return rotational_kinetic(self.J, Omega)
@@ -161,9 +176,12 @@ class HeavyTop(AbstractRigidBodyModel):
     def potential(self, R, q):
         return _gravity_potential(self.m, self.g, self.rho_c, R)
 
-    def default_state(self) -> RigidState:
-        empty = jnp.zeros((0,), jnp.float64)
-        return self.state_from_velocities(self.R0, self.omega0, empty, empty)
+    def state(self, R0=DEFAULT_R0, omega0=DEFAULT_OMEGA0) -> RigidState:
+        """The state with attitude ``R0`` (3x3, in SO(3)) and body angular velocity
+        ``omega0`` (3,); defaults the paper's, :attr:`DEFAULT_R0`, :attr:`DEFAULT_OMEGA0`.
+        ``ValueError`` naming the argument otherwise (SO(3) and finiteness checked on
+        concrete values only: ``jit``, ``vmap`` and ``grad`` trace through)."""
+        return _initial_state(self, "HeavyTop", R0, omega0)
 
     def invariants(self, state: RigidState) -> dict[str, jax.Array]:
         return {
@@ -187,7 +205,8 @@ class CarPendulum(AbstractRigidBodyModel):
     Invariants: energy; the cart's horizontal momentum ``p`` (translations of the cart);
     the vertical angular momentum about the origin, ``e3·(R μ) + x p_y − y p_x``
     (rotations about the vertical axis through the origin move the cart and the pendulum
-    together). Defaults: the paper's parameters and initial state, ``g = 9.81``.
+    together). Defaults: the paper's parameters, ``g = 9.81``, and (:meth:`state`) its
+    initial state.
     """
 
     m: jax.Array
@@ -195,25 +214,22 @@ class CarPendulum(AbstractRigidBodyModel):
     g: jax.Array
     rho_c: jax.Array
     J: jax.Array
-    q0: jax.Array
-    v0: jax.Array
-    R0: jax.Array
-    omega0: jax.Array
 
     dof: ClassVar[int] = 2
+    #: The default initial condition: the paper's (zero horizontal momentum).
+    DEFAULT_R0: ClassVar[tuple] = PAPER_R0
+    DEFAULT_OMEGA0: ClassVar[tuple] = PAPER_OMEGA0
+    DEFAULT_Q0: ClassVar[tuple] = (-0.125, -0.0125)
+    DEFAULT_V0: ClassVar[tuple] = (0.525, -0.0125)
 
-    def __init__(self, m=1.0, M=1.0, g=9.81, rho_c=PAPER_RHO_C, J=PAPER_J,
-                 q0=(-0.125, -0.0125), v0=(0.525, -0.0125), R0=PAPER_R0, omega0=PAPER_OMEGA0):
+    def __init__(self, m=1.0, M=1.0, g=9.81, rho_c=PAPER_RHO_C, J=PAPER_J, **removed):
         owner = "CarPendulum"
+        reject_removed_keywords(owner, removed, ("R0", "omega0", "q0", "v0"))
         self.m = as_float_array("m", m, owner)
         self.M = as_float_array("M", M, owner)
         self.g = as_float_array("g", g, owner)
         self.rho_c = as_float_array("rho_c", rho_c, owner)
         self.J = as_float_array("J", J, owner)
-        self.q0 = as_float_array("q0", q0, owner)
-        self.v0 = as_float_array("v0", v0, owner)
-        self.R0 = as_float_array("R0", R0, owner)
-        self.omega0 = as_float_array("omega0", omega0, owner)
 
     def __check_init__(self):
         owner = "CarPendulum"
@@ -221,10 +237,8 @@ class CarPendulum(AbstractRigidBodyModel):
         check_positive("M", self.M, owner)
         check_nonnegative("g", self.g, owner)
         check_inertia("J", self.J, owner)
-        for name, shape in (("rho_c", (3,)), ("q0", (2,)), ("v0", (2,)), ("omega0", (3,))):
-            _check_shape(name, getattr(self, name), shape, owner)
-            _check_finite(name, getattr(self, name), owner)
-        _check_rotation("R0", self.R0, owner)
+        _check_shape("rho_c", self.rho_c, (3,), owner)
+        _check_finite("rho_c", self.rho_c, owner)
 
     def kinetic(self, R, Omega, q, v):
         coupling = self.m * jnp.dot(v, (R @ (Omega @ self.rho_c))[:2])
@@ -235,8 +249,15 @@ class CarPendulum(AbstractRigidBodyModel):
     def potential(self, R, q):
         return _gravity_potential(self.m, self.g, self.rho_c, R)
 
-    def default_state(self) -> RigidState:
-        return self.state_from_velocities(self.R0, self.omega0, self.q0, self.v0)
+    def state(self, R0=DEFAULT_R0, omega0=DEFAULT_OMEGA0, q0=DEFAULT_Q0, v0=DEFAULT_V0
+              ) -> RigidState:
+        """The state with pendulum attitude ``R0`` (3x3, in SO(3)), body angular velocity
+        ``omega0`` (3,), cart position ``q0`` (2,) and velocity ``v0`` (2,); defaults the
+        paper's, :attr:`DEFAULT_R0`, :attr:`DEFAULT_OMEGA0`, :attr:`DEFAULT_Q0`,
+        :attr:`DEFAULT_V0`. ``ValueError`` naming the argument otherwise (SO(3) and
+        finiteness checked on concrete values only: ``jit``, ``vmap`` and ``grad`` trace
+        through)."""
+        return _initial_state(self, "CarPendulum", R0, omega0, q0, v0)
 
     def velocities(self, R, mu, q, p) -> tuple[jax.Array, jax.Array]:
         r"""The inverse Legendre map in closed form (the base class's autodiff mass matrix

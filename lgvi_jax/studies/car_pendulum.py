@@ -44,7 +44,7 @@ from lgvi_jax import so3
 from lgvi_jax._io import atomic_write_text
 from lgvi_jax.diagnostics import drift_ratio, environment, observed_order
 from lgvi_jax.integrators import RIGID_METHODS, resolve_method
-from lgvi_jax.models import CarPendulum
+from lgvi_jax.models import CarPendulum, RigidState
 from lgvi_jax.plotting import envelope, figure, positive, save, style_for
 from lgvi_jax.simulate import simulate_timed
 from lgvi_jax.studies import script_main
@@ -258,10 +258,13 @@ def _invariants(model, state):
     return model.invariants(state)
 
 
-def sweep_model(cfg) -> CarPendulum:
+def sweep_problem(cfg) -> tuple[CarPendulum, RigidState]:
+    """``(model, state0)`` of the moving-cart sweep: the paper's parameters (with
+    ``cfg["g"]``) from ``cfg["sweep_state"]``."""
     st = cfg["sweep_state"]
-    return CarPendulum(q0=st["q0"], v0=st["v0"], omega0=st["omega0"],
-                       R0=so3.exp(jnp.asarray(st["R0_rotation_vector"])))
+    model = CarPendulum(g=cfg["g"])
+    return model, model.state(q0=st["q0"], v0=st["v0"], omega0=st["omega0"],
+                              R0=so3.exp(jnp.asarray(st["R0_rotation_vector"])))
 
 
 def _config_vector(model, state) -> np.ndarray:
@@ -271,8 +274,9 @@ def _config_vector(model, state) -> np.ndarray:
 
 def sweep(cfg, out: Path, log) -> dict:
     """The sweep from the paper's state and from a state with non-zero cart momentum."""
-    models = {"paper state": CarPendulum(g=cfg["g"]), "moving cart": sweep_model(cfg)}
-    res = {key: _sweep_one(model, cfg, log) for key, model in models.items()}
+    paper = CarPendulum(g=cfg["g"])
+    problems = {"paper state": (paper, paper.default_state()), "moving cart": sweep_problem(cfg)}
+    res = {key: _sweep_one(model, s0, cfg, log) for key, (model, s0) in problems.items()}
     T = cfg["sweep_t_final"]
     fig, axes = figure(2, 3, width=15, height=4.2)
     for row, (key, rr) in enumerate(res.items()):
@@ -300,8 +304,7 @@ def sweep(cfg, out: Path, log) -> dict:
     return res
 
 
-def _sweep_one(model, cfg, log) -> dict:
-    s0 = model.default_state()
+def _sweep_one(model, s0, cfg, log) -> dict:
     T = cfg["sweep_t_final"]
     h_ref = cfg["reference_dt"]
     ref_state, _ = _advance(model, RIGID_METHODS["rk4"](), s0, jnp.float64(h_ref),

@@ -306,7 +306,7 @@ def run(out_dir: Path | str, *, quick: bool = False, log: Callable = print) -> d
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     cfg = config(quick)
-    model = HarmonicOscillator(m=1.0, k=1.0, q0=1.0, p0=0.0)
+    model = HarmonicOscillator(m=1.0, k=1.0)  # its default state: q0 = 1, p0 = 0
     log("  figures 1-3 ...")
     figs = figures_1_to_3(model, cfg, out)
     log("  convergence orders ...")

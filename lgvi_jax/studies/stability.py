@@ -199,8 +199,8 @@ def propagator_limit(model, method, grid: Sequence[float], rtol: float) -> float
 
 
 def oscillator_study(cfg: dict, log: Callable) -> dict:
-    model = HarmonicOscillator(m=1.0, k=1.0, q0=1.0, p0=0.0)
-    s0 = model.default_state()
+    model = HarmonicOscillator(m=1.0, k=1.0)
+    s0 = model.state(q0=1.0, p0=0.0)
     omega = float(model.omega)
     lo, hi, n = cfg["oscillator_scan"]
     grid = np.geomspace(lo, hi, int(n)) / omega

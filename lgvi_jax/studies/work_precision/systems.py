@@ -18,8 +18,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from lgvi_jax import so3
-from lgvi_jax.models import CarPendulum, HarmonicOscillator, PhaseState
-from lgvi_jax.reference import HandReference, moving_scene
+from lgvi_jax.models import HarmonicOscillator, PhaseState
+from lgvi_jax.reference import HandReference, moving_scene, paper_scene
 
 #: The times at which positions are compared with the reference.
 CHECK_TIMES = (10.0, 50.0)
@@ -27,7 +27,9 @@ CHECK_TIMES = (10.0, 50.0)
 
 @dataclasses.dataclass
 class System:
-    """A test problem: the model, its initial state, how to compare with the reference."""
+    """A test problem: the model, its initial state, how to compare with the reference.
+    ``initial_condition``: for the car-pendulum, the ``(R0, omega0, q0, v0)`` that
+    ``state0`` was built from, where the independent reference starts."""
 
     key: str
     title: str
@@ -35,6 +37,7 @@ class System:
     model: Any
     state0: Any
     ref_rtol: float = 1e-13
+    initial_condition: dict = dataclasses.field(default_factory=dict)
     _ref: dict = dataclasses.field(default_factory=dict)
 
     @property
@@ -51,7 +54,7 @@ class System:
         """The independent reference at time ``t`` (cached per time)."""
         if t not in self._ref:
             if self.rigid:
-                ref = HandReference(self.model)
+                ref = HandReference(self.model, **self.initial_condition)
                 times = sorted({*(c for c in CHECK_TIMES if c <= t), t})
                 ys = ref.at(times, rtol=self.ref_rtol, atol=self.ref_rtol)
                 for tt, y in zip(times, ys, strict=True):
@@ -69,7 +72,7 @@ class System:
     # SciPy: the system as a NumPy right-hand side, and back to the library's state
     def scipy_problem(self) -> tuple[Callable, np.ndarray]:
         if self.rigid:
-            ref = HandReference(self.model)
+            ref = HandReference(self.model, **self.initial_condition)
             return ref.rhs, ref.y0
         m, k = float(self.model.m), float(self.model.k)
 
@@ -105,14 +108,11 @@ def _from_hand(model, y):
 def make_system(key: str, ref_rtol: float = 1e-13) -> System:
     """``car-paper`` (the paper's state), ``car-moving`` (non-zero horizontal momentum,
     :func:`lgvi_jax.reference.moving_scene`) or ``oscillator`` (m = k = q0 = 1, p0 = 0)."""
-    if key == "car-paper":
-        model = CarPendulum()
-        return System(key, "car-pendulum, paper state", "car-pendulum", model,
-                      model.default_state(), ref_rtol)
-    if key == "car-moving":
-        model = moving_scene()
-        return System(key, "car-pendulum, moving cart", "car-pendulum", model,
-                      model.default_state(), ref_rtol)
+    if key in ("car-paper", "car-moving"):
+        scene, title = ((paper_scene(), "car-pendulum, paper state") if key == "car-paper"
+                        else (moving_scene(), "car-pendulum, moving cart"))
+        return System(key, title, "car-pendulum", scene.model, scene.state0, ref_rtol,
+                      scene.initial_condition)
     if key == "oscillator":
         model = HarmonicOscillator()
         return System(key, "harmonic oscillator", "oscillator", model, model.default_state(),
