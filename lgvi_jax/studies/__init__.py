@@ -10,9 +10,12 @@ Each module has ``run(out_dir, quick=False, log=print) -> dict``: it writes its 
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from collections.abc import Callable
+from pathlib import Path
+from typing import Any
 
 #: The methods the work-precision and stability studies run on SO(3) x R^n (the
 #: car-pendulum) and on R^n (the oscillator), by scene name; names that do not resolve are
@@ -46,3 +49,11 @@ def script_main(run: Callable, description: str | None, argv: list[str] | None =
     run(args.out, log=_stderr, **options)
     print(f"done in {time.perf_counter() - start:.1f} s", file=sys.stderr)
     return 0
+
+
+def mark_complete(out: Path, results: Any, indent: int = 2) -> None:
+    """Write ``out/results.json`` — last, after every figure and ``summary.md``: its presence
+    marks the stage as complete (:mod:`lgvi_jax.reproduce` skips a completed stage)."""
+    from .._io import atomic_write_text
+
+    atomic_write_text(Path(out) / "results.json", json.dumps(results, indent=indent))

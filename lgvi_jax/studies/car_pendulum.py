@@ -29,7 +29,6 @@ Run:  ``python -m lgvi_jax.studies.car_pendulum --out DIR [--quick]`` or ``lgvi-
 
 from __future__ import annotations
 
-import json
 import sys
 import time
 from collections.abc import Callable
@@ -47,7 +46,7 @@ from lgvi_jax.integrators import RIGID_METHODS, resolve_method
 from lgvi_jax.models import CarPendulum, RigidState
 from lgvi_jax.plotting import envelope, figure, positive, save, style_for
 from lgvi_jax.simulate import simulate_timed
-from lgvi_jax.studies import script_main
+from lgvi_jax.studies import mark_complete, script_main
 
 PAPER_METHODS = ("lgvi", "hamel")
 METHODS = ("lgvi", "hamel", "hamel-cayley", "hamel-exact", "rk4")
@@ -780,8 +779,7 @@ def run(out_dir: Path | str, *, quick: bool = False, log: Callable = print) -> d
         "environment": environment(),
     }
     write_summary(results, out)
-    # results.json last: its presence marks the stage as complete (see lgvi_jax.reproduce).
-    atomic_write_text(out / "results.json", json.dumps(results, indent=2))
+    mark_complete(out, results)
     return results
 
 

@@ -35,7 +35,6 @@ Run:  ``python -m lgvi_jax.studies.identify_inertia --out DIR [--quick]``.
 
 from __future__ import annotations
 
-import json
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -49,7 +48,7 @@ from lgvi_jax.inertia import centroidal_inertia, is_physical, pivot_inertia
 from lgvi_jax.models import CarPendulum, HeavyTop
 from lgvi_jax.models.rigid_bodies import PAPER_J, PAPER_RHO_C
 from lgvi_jax.plotting import figure, save
-from lgvi_jax.studies import script_main
+from lgvi_jax.studies import mark_complete, script_main
 
 J_C_TRUE = np.diag([0.03, 0.05, 0.04])
 NOISE = 1e-3
@@ -177,8 +176,7 @@ def run(out_dir: Path | str, *, quick: bool = False, log: Callable = print) -> d
     }
     figures(results, out)
     write_summary(results, out)
-    # results.json last: its presence marks the stage as complete (see lgvi_jax.reproduce).
-    atomic_write_text(out / "results.json", json.dumps(results, indent=1))
+    mark_complete(out, results, indent=1)
     return results
 
 

@@ -13,7 +13,6 @@ Run:  ``python -m lgvi_jax.studies.oscillator --out DIR [--quick]`` or ``lgvi-ja
 
 from __future__ import annotations
 
-import json
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -33,7 +32,7 @@ from lgvi_jax.integrators import EUCLIDEAN_METHODS
 from lgvi_jax.models import HarmonicOscillator
 from lgvi_jax.plotting import envelope, figure, positive, save, style_for
 from lgvi_jax.simulate import final_state, simulate, simulate_timed
-from lgvi_jax.studies import script_main
+from lgvi_jax.studies import mark_complete, script_main
 
 PAPER_METHODS = ("rk4", "gl4", "galerkin4")
 ALL_METHODS = ("rk4", "gl4", "galerkin4", "verlet", "gl6", "galerkin6")
@@ -325,8 +324,7 @@ def run(out_dir: Path | str, *, quick: bool = False, log: Callable = print) -> d
         "environment": environment(),
     }
     write_summary(results, out)
-    # results.json last: its presence marks the stage as complete (see lgvi_jax.reproduce).
-    atomic_write_text(out / "results.json", json.dumps(results, indent=2))
+    mark_complete(out, results)
     return results
 
 

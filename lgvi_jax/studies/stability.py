@@ -44,7 +44,6 @@ Run:  ``python -m lgvi_jax.studies.stability --out DIR [--quick]`` or
 
 from __future__ import annotations
 
-import json
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -60,7 +59,7 @@ from lgvi_jax.diagnostics import environment
 from lgvi_jax.models import CarPendulum, HarmonicOscillator, PhaseState
 from lgvi_jax.plotting import figure, method_style, positive, save
 from lgvi_jax.scenes import resolve_methods
-from lgvi_jax.studies import EUCLIDEAN_METHOD_NAMES, RIGID_METHOD_NAMES, script_main
+from lgvi_jax.studies import EUCLIDEAN_METHOD_NAMES, RIGID_METHOD_NAMES, mark_complete, script_main
 from lgvi_jax.trajectory import RESULTS
 
 QUICK_RIGID = ("rk4",)
@@ -468,8 +467,7 @@ def run(out_dir: Path | str, *, quick: bool = False, log: Callable = print) -> d
         "environment": environment(),
     }
     write_summary(results, out)
-    # results.json last: its presence marks the stage as complete (see lgvi_jax.reproduce).
-    atomic_write_text(out / "results.json", json.dumps(_jsonable(results), indent=1))
+    mark_complete(out, _jsonable(results), indent=1)
     return results
 
 

@@ -60,7 +60,6 @@ it there to run without it).
 
 from __future__ import annotations
 
-import json
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -68,8 +67,8 @@ from typing import Any
 
 import numpy as np
 
-from lgvi_jax._io import atomic_write_text
 from lgvi_jax.scenes import get_scene, resolve_methods
+from lgvi_jax.studies import mark_complete
 
 from . import metrics, report, runners, sweeps, systems
 from .metrics import measure, observed_error_order, regimes
@@ -176,6 +175,5 @@ def run(out_dir: Path | str, *, quick: bool = False, log: Callable = print) -> d
     }
     if "long" in results:
         clean["long"] = {**results["long"], "runs": _strip(results["long"]["runs"], True)}
-    # results.json last: its presence marks the stage as complete (see lgvi_jax.reproduce).
-    atomic_write_text(out / "results.json", json.dumps(_jsonable(clean), indent=1))
+    mark_complete(out, _jsonable(clean), indent=1)
     return results
