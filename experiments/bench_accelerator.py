@@ -24,7 +24,7 @@ import jax
 import numpy as np
 
 import lgvi_jax as lj
-import lgvi_jax.scenes  # binds lj.scenes
+import lgvi_jax.systems  # binds lj.systems
 from lgvi_jax._io import atomic_write_json
 from lgvi_jax.sweep import batch_arguments, engine_name, initial_conditions, sweep_method
 
@@ -58,7 +58,7 @@ def _numba_rows(steps: int, batch: int, methods) -> list[dict]:
     nb, used = _load_numba(methods, print)  # compiled once, before the timed runs
     if nb is None:
         return []
-    model, s0 = lj.scenes.get_scene("car-pendulum").build()
+    model, s0 = lj.systems.get_system("car-pendulum").build()
     params = nb.params_from_model(model)
     arrays = _numpy_states(initial_conditions(model, s0, batch, PERTURB, SEED))
     rows = []
@@ -97,7 +97,7 @@ def main(argv=None) -> int:
     print(json.dumps({k: v for k, v in report.items() if k != "rows"}), flush=True)
     batches = [int(b) for b in a.batches.split(",")]
     for system in a.systems.split(","):
-        model, s0 = lj.scenes.get_scene(system).build()
+        model, s0 = lj.systems.get_system(system).build()
         for name in a.methods.split(","):
             for engine in a.engines.split(","):
                 method = sweep_method(system, name, scalar=engine == "scalar")

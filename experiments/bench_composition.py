@@ -9,7 +9,8 @@ compilation (best of ``--repeats`` runs), Newton iterations per sub-step, and
 
 i.e. 1.0 when a composed step costs exactly ``stages`` base steps (from process CPU time,
 robust on a shared machine, and from wall time). Also the configuration
-error at T = 1 against the hand-derived reference (``lgvi_jax.reference``) at the same h, to
+error at T = 1 against the hand-derived reference (``lgvi_jax.systems.car_pendulum``) at
+the same h, to
 compare the schemes at equal cost.
 
     python experiments/bench_composition.py --out results/composition [--quick]
@@ -31,7 +32,7 @@ import numpy as np
 import lgvi_jax as L
 from lgvi_jax._io import atomic_write_text
 from lgvi_jax.integrators import LGVI, RKMK4, SCHEMES, compose
-from lgvi_jax.reference import HandReference, paper_scene
+from lgvi_jax.systems.car_pendulum import HandReference, paper_problem
 
 DEFAULT = ("suzuki4", "kahan-li6", "kahan-li8")
 
@@ -73,9 +74,9 @@ def run(out: Path, *, quick: bool = False, dt: float = 0.01, steps: int | None =
         repeats: int = 5, log=print) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     n = steps or (1000 if quick else 5000)
-    scene = paper_scene()
-    model, s0 = scene.model, scene.state0
-    y_ref = scene.reference().at([0.0, 1.0])[-1]
+    spec = paper_problem()
+    model, s0 = spec.model, spec.state0
+    y_ref = spec.reference().at([0.0, 1.0])[-1]
     schemes = DEFAULT if quick else tuple(SCHEMES)
 
     methods = {"lgvi": LGVI()}

@@ -11,7 +11,7 @@ systems), :mod:`lgvi_jax.options` (the choices of algorithm, as enums),
 :mod:`lgvi_jax.newton` (Newton solver), :mod:`lgvi_jax.models` (models defined by
 their energies), :mod:`lgvi_jax.integrators` (one file per method),
 :mod:`lgvi_jax.trajectory` (what a rollout returns, result codes), :mod:`lgvi_jax.simulate`
-(rollouts), :mod:`lgvi_jax.diagnostics`, :mod:`lgvi_jax.plotting`, :mod:`lgvi_jax.scenes`,
+(rollouts), :mod:`lgvi_jax.diagnostics`, :mod:`lgvi_jax.plotting`, :mod:`lgvi_jax.systems`,
 :mod:`lgvi_jax.inertia` (physically consistent inertia parametrisation),
 :mod:`lgvi_jax.identify` (parameter fitting; imported on first use, as it needs optax),
 :mod:`lgvi_jax.sweep`, :mod:`lgvi_jax.studies` (what ``lgvi-jax reproduce`` runs),

@@ -324,7 +324,8 @@ def observe(model: AbstractRigidBodyModel, times: Sequence[float], *,
 
     The trajectory: with ``method = None``, an integrator independent of the library's:
     for the car-pendulum the hand-derived equations of
-    :class:`~lgvi_jax.reference.HandReference`, for any other rigid-body model the model's
+    :class:`~lgvi_jax.systems.car_pendulum.HandReference`, for any other rigid-body model the
+    model's
     continuous equations
     (:meth:`~lgvi_jax.models.AbstractRigidBodyModel.vector_field`, ``R`` as 9 numbers),
     both by SciPy's DOP853 at ``rtol = atol = 1e-13``, integrated from one time to the
@@ -373,9 +374,9 @@ def observe(model: AbstractRigidBodyModel, times: Sequence[float], *,
 
 
 def _hand_reference_at(model, R0, omega0, q0, v0, times):
-    """The car-pendulum's hand-derived reference (:mod:`lgvi_jax.reference`) from the
+    """The car-pendulum's hand-derived reference (:mod:`lgvi_jax.systems.car_pendulum`) from the
     given initial configuration and velocities."""
-    from .reference import HandReference
+    from .systems.car_pendulum import HandReference
 
     ref = HandReference(model, R0=R0, omega0=omega0, q0=q0, v0=v0)
     states = ref.at(times)

@@ -237,8 +237,8 @@ def test_accelerator_bench_reports_the_sweeps_work(tmp_path, capsys):
     spec = importlib.util.spec_from_file_location("bench_accelerator", path)
     bench_accelerator = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(bench_accelerator)
-    from lgvi_jax.scenes import get_scene
     from lgvi_jax.sweep import initial_conditions, run_batch, sweep_method
+    from lgvi_jax.systems import get_system
 
     out = tmp_path / "acc"
     code = bench_accelerator.main(["--out", str(out), "--systems", "free-rigid-body",
@@ -251,7 +251,7 @@ def test_accelerator_bench_reports_the_sweeps_work(tmp_path, capsys):
     assert (row["system"], row["method"], row["engine"], row["batch"], row["steps"]) == (
         "free-rigid-body", "lgvi", "scalar", 2, 20)
     assert row["failed"] == 0 and row["steps_per_s"] > 0 and row["compile_s"] > 0
-    model, s0 = get_scene("free-rigid-body").build()
+    model, s0 = get_system("free-rigid-body").build()
     states = initial_conditions(model, s0, 2, bench_accelerator.PERTURB, bench_accelerator.SEED)
     ref = run_batch(model, sweep_method("free-rigid-body", "lgvi"), states,
                     bench_accelerator.DT, 20)

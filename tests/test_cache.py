@@ -99,9 +99,9 @@ def traces(tmp_path, monkeypatch):
 
 def _batch(method_name="hamel"):
     from lgvi_jax import sweep
-    from lgvi_jax.scenes import get_scene
+    from lgvi_jax.systems import get_system
 
-    model, state0 = get_scene("free-rigid-body").build({})
+    model, state0 = get_system("free-rigid-body").build({})
     method = sweep.sweep_method("free-rigid-body", method_name)
     states = sweep.initial_conditions(model, state0, 4, 0.1, 3)
     return sweep.batch_arguments(model, method, states, 0.01, 50)
@@ -150,9 +150,9 @@ def test_the_sweeps_initial_conditions_are_stored_and_reloaded(traces, monkeypat
     from jax import export
 
     from lgvi_jax import sweep
-    from lgvi_jax.scenes import get_scene
+    from lgvi_jax.systems import get_system
 
-    model, state0 = get_scene("car-pendulum").build({})
+    model, state0 = get_system("car-pendulum").build({})
     first = sweep.initial_conditions(model, state0, 3, 0.1, 5)
     assert type(first) is type(state0)
     assert len(list(traces.glob("*.jaxexport"))) == 1
@@ -170,9 +170,9 @@ def test_a_program_that_cannot_be_exported_is_not_traced_for_export_again(traces
     directly, and a marker keeps later processes from paying for the failed export."""
     from jax import export
 
-    from lgvi_jax.scenes import get_scene
+    from lgvi_jax.systems import get_system
 
-    _, state0 = get_scene("car-pendulum").build({})
+    _, state0 = get_system("car-pendulum").build({})
     out = _cache.call("test", lambda s: jax.tree.map(lambda x: 2 * x, s), state0)
     assert type(out) is type(state0)
     assert not list(traces.glob("*.jaxexport")) and len(list(traces.glob("*.noexport"))) == 1
@@ -203,9 +203,9 @@ def test_a_prepared_rollout_is_loaded_once_and_gives_the_same_results(traces, mo
     import threading
 
     from lgvi_jax import sweep
-    from lgvi_jax.scenes import get_scene
+    from lgvi_jax.systems import get_system
 
-    model, state0 = get_scene("free-rigid-body").build({})
+    model, state0 = get_system("free-rigid-body").build({})
     method = sweep.sweep_method("free-rigid-body", "hamel")
     devices = tuple(jax.devices())
     batch = 2 * len(devices)

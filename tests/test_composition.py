@@ -36,8 +36,8 @@ from lgvi_jax.integrators.order_conditions import (
     error_constant,
     order_conditions,
 )
-from lgvi_jax.reference import HandReference, moving_scene, paper_scene
-from lgvi_jax.scenes import get_scene
+from lgvi_jax.systems import get_system
+from lgvi_jax.systems.car_pendulum import HandReference, moving_problem, paper_problem
 
 # ------------------------------------------------------------------ coefficient sets
 
@@ -170,13 +170,13 @@ def test_resolve_method_syntax_and_traits():
     assert resolve_method("lgvi@yoshida8", RIGID_METHODS).stages == 15
     hc = resolve_method("hamel-cayley@triple-jump", RIGID_METHODS)
     assert (hc.order, hc.stages, hc.symplectic) == (4, 3, False)  # inherits the base's traits
-    v = get_scene("oscillator").method("verlet@8")
+    v = get_system("oscillator").method("verlet@8")
     assert (v.order, v.implicit, v.symplectic) == (8, False, True)
     assert resolve_method("lgvi", RIGID_METHODS).name == "lgvi"
-    scene = get_scene("car-pendulum")
-    assert "lgvi@6" in scene.methods and "lgvi@kahan-li8" in scene.methods
-    assert "rk4@4" not in scene.methods and "lgvi@5" not in scene.methods
-    assert "lgvi@6" not in list(scene.methods)  # listings show the base methods only
+    spec = get_system("car-pendulum")
+    assert "lgvi@6" in spec.methods and "lgvi@kahan-li8" in spec.methods
+    assert "rk4@4" not in spec.methods and "lgvi@5" not in spec.methods
+    assert "lgvi@6" not in list(spec.methods)  # listings show the base methods only
     assert "order 6, symmetric, symplectic, implicit, 9 stages of lgvi" in m.describe()
 
 
@@ -192,7 +192,7 @@ def test_resolve_method_syntax_and_traits():
 ])
 def test_bad_method_names_are_refused_with_a_clear_message(name, match):
     with pytest.raises(ValueError, match=match):
-        get_scene("car-pendulum").method(name)
+        get_system("car-pendulum").method(name)
 
 
 def test_composition_validates_its_arguments():
@@ -215,7 +215,7 @@ def test_sweep_and_cli_accept_the_syntax(tmp_path, capsys):
     from lgvi_jax.sweep import SweepConfig, SweepError
 
     cfg = dict(system="car-pendulum", dts=(0.01,), t_final=1.0, n=2, perturb=0.0, seed=0)
-    valid = list(get_scene("car-pendulum").methods)
+    valid = list(get_system("car-pendulum").methods)
     SweepConfig(methods=("lgvi", "lgvi@6", "hamel-exact@kahan-li8"), **cfg).validate(valid)
     with pytest.raises(SweepError, match="rk4 is not symmetric"):
         SweepConfig(methods=("rk4@4",), **cfg).validate(valid)
@@ -258,7 +258,7 @@ ORDER_STEPS = {
 #: which checkpoint is the max changes within the range (local slopes 7.1-8.1): not a clean
 #: power law, hence the wide band, which still tells order 8 from order 6.
 TOLERANCE = {4: 0.5, 6: 0.5, 8: 1.0}
-CASES = {"paper": paper_scene, "moving": moving_scene}
+CASES = {"paper": paper_problem, "moving": moving_problem}
 
 
 @eqx.filter_jit
@@ -282,10 +282,10 @@ def _run_to(model, method, state0, h, n):
 def references():
     out = {}
     for case, make in CASES.items():
-        scene = make()
-        ref = scene.reference()
+        spec = make()
+        ref = spec.reference()
         times = [T_ORDER * j / N_CHECKPOINTS for j in range(N_CHECKPOINTS + 1)]
-        out[case] = (scene.model, scene.state0, ref, ref.at(times))
+        out[case] = (spec.model, spec.state0, ref, ref.at(times))
     return out
 
 
@@ -321,8 +321,8 @@ def test_observed_order_against_the_reference(references, case, order):
 def test_time_reversibility(order):
     """100 composed steps of h = 0.02 (2 s of the moving car-pendulum), then 100 of −h,
     return to the initial state to 1e-11, as for the base method (test_lie)."""
-    scene = moving_scene()
-    model, s0 = scene.model, scene.state0
+    spec = moving_problem()
+    model, s0 = spec.model, spec.state0
     method = resolve_method(f"lgvi@{order}", RIGID_METHODS)
     end = _run_to(model, method, s0, 0.02, 100)
     back = _run_to(model, method, end, -0.02, 100)
@@ -342,8 +342,8 @@ def test_symplectic_in_canonical_coordinates():
     derivatives through the sub-step scan and the Newton solves)."""
     from lgvi_jax.models import RigidState
 
-    scene = moving_scene()
-    model, s0 = scene.model, scene.state0
+    spec = moving_problem()
+    model, s0 = spec.model, spec.state0
     # The sub-steps solved on arrays: the same discrete equations as the default scalar
     # engine (tests/test_scalarize.py: the same trajectories to round-off), whose tangent
     # rule, the one custom_jvp rule reverse mode also transposes, is checked against
@@ -385,8 +385,8 @@ def test_momentum_maps_over_1e4_composed_steps():
     the vertical angular momentum are conserved by ``lgvi@4`` and ``lgvi@8`` (the fewest
     and the most stages; ``@6`` is the same code) to the base method's round-off level,
     and R stays on SO(3)."""
-    scene = moving_scene()
-    model, s0 = scene.model, scene.state0
+    spec = moving_problem()
+    model, s0 = spec.model, spec.state0
     # The base method's run saves every 10th state: the compiled rollout tests/test_lie.py
     # runs (tests/conftest.py: SHARED_ROLLOUT_STEPS), loaded rather than compiled again.
     base = L.simulate(model, LGVI(), s0, 0.02, SHARED_ROLLOUT_STEPS,

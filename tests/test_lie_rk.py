@@ -13,13 +13,13 @@ import lgvi_jax as L
 from lgvi_jax import so3
 from lgvi_jax.diagnostics import observed_order
 from lgvi_jax.integrators import RIGID_METHODS, RKMK4
-from lgvi_jax.reference import HandReference, moving_scene, paper_scene
+from lgvi_jax.systems.car_pendulum import HandReference, moving_problem, paper_problem
 
 #: As in test_reference: T = 1, energy error = max over the checkpoints t = 0.2, …, 1.
 T_ORDER = 1.0
 N_CHECKPOINTS = 5
 STEPS = (0.02, 0.01, 0.005, 0.0025)
-CASES = {"paper": paper_scene, "moving": moving_scene}
+CASES = {"paper": paper_problem, "moving": moving_problem}
 
 
 @eqx.filter_jit
@@ -42,8 +42,8 @@ def test_order_4_against_the_reference(case):
     small and the h^5 term still shows at these steps (local slopes 4.59, 4.43, 4.27,
     tending to 4; RK4 on the embedded equations behaves alike, test_reference): only its
     configuration order is asserted there."""
-    scene = CASES[case]()
-    model, s0, ref = scene.model, scene.state0, scene.reference()
+    spec = CASES[case]()
+    model, s0, ref = spec.model, spec.state0, spec.reference()
     ys = ref.at([T_ORDER * j / N_CHECKPOINTS for j in range(N_CHECKPOINTS + 1)])
     E0 = ref.energy(ys[0])
     method = RIGID_METHODS["rkmk4"]()
@@ -69,8 +69,8 @@ def test_stays_on_so3_over_1e5_steps_but_loses_the_momentum_map():
     at every saved state (the rotation is only ever multiplied by exponentials), whereas
     the vertical angular momentum drifts (neither symplectic nor momentum-conserving).
     The cart momentum is conserved to round-off anyway: its force is exactly zero."""
-    scene = moving_scene()
-    traj = L.simulate(scene.model, RKMK4(), scene.state0, 0.01, 100_000, save_every=1000)
+    spec = moving_problem()
+    traj = L.simulate(spec.model, RKMK4(), spec.state0, 0.01, 100_000, save_every=1000)
     assert traj.ok, traj.message
     orth = np.asarray(so3.orthogonality_error(traj.state.R))
     # Each step multiplies R by exponentials orthogonal to a few ulps: the error grows as
@@ -88,8 +88,8 @@ def test_stays_on_so3_over_1e5_steps_but_loses_the_momentum_map():
 def test_is_not_time_reversible():
     """Contrast with the symmetric methods (test_composition, test_lie): 100 steps of
     h = 0.02 and back do not return to the start beyond the O(h^4) error."""
-    scene = moving_scene()
-    model, s0 = scene.model, scene.state0
+    spec = moving_problem()
+    model, s0 = spec.model, spec.state0
     method = RKMK4()
     end = _run_to(model, method, s0, 0.02, 100)
     back = _run_to(model, method, end, -0.02, 100)

@@ -159,11 +159,11 @@ def test_oscillator_removed_keywords_say_where_they_go(name):
 def test_oscillator_model_does_not_change_with_the_initial_condition():
     import equinox as eqx
 
-    from lgvi_jax.scenes import get_scene
+    from lgvi_jax.systems import get_system
 
-    scene = get_scene("oscillator")
-    model_a, state_a = scene.build()
-    model_b, state_b = scene.build({"q0": 0.3, "p0": -2.0})
+    spec = get_system("oscillator")
+    model_a, state_a = spec.build()
+    model_b, state_b = spec.build({"q0": 0.3, "p0": -2.0})
     assert bool(eqx.tree_equal(model_a, model_b))
     assert bool(eqx.tree_equal(model_a, HarmonicOscillator()))
     np.testing.assert_array_equal(state_b.q, [0.3])

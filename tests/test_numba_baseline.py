@@ -76,11 +76,11 @@ def test_every_vi_of_the_benchmark_has_a_baseline():
 
 @pytest.mark.parametrize("name", ["hamel", "hamel-cayley", "hamel-exact"])
 def test_numba_hamel_matches_the_engine(name):
-    from lgvi_jax.reference import moving_scene
+    from lgvi_jax.systems.car_pendulum import moving_problem
 
-    # The paper's state and a moving cart (generic attitude, cart momentum); both scenes
+    # The paper's state and a moving cart (generic attitude, cart momentum); both problems
     # share their parameters, so one batch holds both.
-    moving = moving_scene()
+    moving = moving_problem()
     models = (lj.CarPendulum(), moving.model)
     states = (models[0].default_state(), moving.state0)
     params = nb.params_from_model(models[0])
@@ -161,12 +161,12 @@ def test_numba_diagnostics_equal_the_sweeps_on_the_same_states():
     model (what the sweep's metrics evaluate) reduced by the sweep's definitions: equal to
     rounding, with bounds from the standard error analysis of the two evaluations."""
     from lgvi_jax.bench import numba_hamel as nh
-    from lgvi_jax.reference import moving_scene
+    from lgvi_jax.systems.car_pendulum import moving_problem
 
-    scene = moving_scene()  # generic attitude, cart moving: every term of H is non-zero
-    model = scene.model
+    spec = moving_problem()  # generic attitude, cart moving: every term of H is non-zero
+    model = spec.model
     # 201 states: every 10th of the first 2000 steps
-    ok, st, inv = _engine(model, lj.LGVI(), scene.state0, 5e-3, 2000)
+    ok, st, inv = _engine(model, lj.LGVI(), spec.state0, 5e-3, 2000)
     assert ok
     R, mu, q, p = (np.ascontiguousarray(np.asarray(x)) for x in (st.R, st.mu, st.q, st.p))
     params = nb.params_from_model(model)

@@ -1,5 +1,5 @@
 r"""The car-pendulum against an independent reference: the hand-derived continuous equations
-of :mod:`lgvi_jax.reference` (the derivation is in its docstring), in plain NumPy,
+of :mod:`lgvi_jax.systems.car_pendulum` (the derivation is in its docstring), in plain NumPy,
 integrated by SciPy's DOP853 at ``rtol = atol = 1e-13``. The reference uses only the model's
 parameters and the initial configuration and velocities; the library enters only as the
 system under test.
@@ -14,7 +14,7 @@ import pytest
 
 import lgvi_jax as L
 from lgvi_jax.diagnostics import observed_order
-from lgvi_jax.reference import HandReference, hat, moving_scene, paper_scene
+from lgvi_jax.systems.car_pendulum import HandReference, hat, moving_problem, paper_problem
 
 VI_METHODS = ("lgvi", "hamel", "hamel-cayley", "hamel-exact")
 ALL_METHODS = (*VI_METHODS, "rk4")
@@ -32,7 +32,7 @@ T_REF = 2.0
 
 # --- the two initial states --------------------------------------------------------------
 
-CASES = {"paper": paper_scene, "moving": moving_scene}
+CASES = {"paper": paper_problem, "moving": moving_problem}
 case_params = pytest.mark.parametrize("case", list(CASES), indirect=True)
 
 
@@ -41,11 +41,11 @@ def case(request):
     """``(model, state0, reference, ys, y_T)``: the library's model and initial state, the
     reference at its steps on ``[0, T_REF]`` and at ``T_ORDER``, computed once per initial
     state."""
-    scene = CASES[request.param]()
-    ref = scene.reference()
+    spec = CASES[request.param]()
+    ref = spec.reference()
     _, ys = ref.solve(T_REF)
     _, ys_order = ref.solve(T_ORDER)
-    return scene.model, scene.state0, ref, ys, ys_order[-1]
+    return spec.model, spec.state0, ref, ys, ys_order[-1]
 
 
 def config_error(state, y):

@@ -14,7 +14,7 @@ import pytest
 
 from lgvi_jax.cli import main
 from lgvi_jax.reproduce import FULL_STAGES, STAGES
-from lgvi_jax.scenes import get_scene
+from lgvi_jax.systems import get_system
 
 # ---------------------------------------------------------------------------------------
 # reproduce --full --quick: the work-precision, stability and identification stages
@@ -59,7 +59,7 @@ def test_full_reproduction_through_the_cli(full_run):
 
 
 def _order(key: str, method: str) -> int:
-    return get_scene("oscillator" if key == "oscillator" else "car-pendulum").method(
+    return get_system("oscillator" if key == "oscillator" else "car-pendulum").method(
         method).order
 
 

@@ -332,18 +332,18 @@ def test_free_body_and_top_states_validate_their_arguments():
 
 @pytest.mark.parametrize("system", ["free-rigid-body", "heavy-top", "car-pendulum"])
 def test_a_model_does_not_change_with_the_initial_condition(system):
-    """The model is its parameters only: scenes built with different initial conditions
+    """The model is its parameters only: systems built with different initial conditions
     give equal models (the same pytree, leaves equal) and different states; no field is an
     initial condition."""
-    from lgvi_jax.scenes import get_scene
+    from lgvi_jax.systems import get_system
 
-    scene = get_scene(system)
+    spec = get_system(system)
     overrides = {"omega0": np.array([1.0, -0.5, 3.0]),
                  "R0": np.ravel(np.asarray(so3.exp(jnp.array([0.6, -0.9, 0.4]))))}
     if system == "car-pendulum":
         overrides.update(q0=np.array([0.7, -0.4]), v0=np.array([0.8, -0.3]))
-    model_a, state_a = scene.build()
-    model_b, state_b = scene.build(overrides)
+    model_a, state_a = spec.build()
+    model_b, state_b = spec.build(overrides)
     assert bool(eqx.tree_equal(model_a, model_b))
     assert jax.tree.structure(model_a) == jax.tree.structure(RIGID_MODELS[system]())
     assert bool(eqx.tree_equal(model_a, RIGID_MODELS[system]()))
@@ -351,5 +351,5 @@ def test_a_model_does_not_change_with_the_initial_condition(system):
     fields = {f.name for f in dataclasses.fields(model_a)}
     assert not fields & {"R0", "omega0", "q0", "v0"}, fields
     # A parameter does change the model.
-    model_c, _ = scene.build({"J": np.ravel(np.diag([1.0, 1.5, 2.0]))})
+    model_c, _ = spec.build({"J": np.ravel(np.diag([1.0, 1.5, 2.0]))})
     assert not bool(eqx.tree_equal(model_a, model_c))

@@ -18,7 +18,6 @@ import lgvi_jax as lj
 from lgvi_jax import so3
 from lgvi_jax.cli import main
 from lgvi_jax.diagnostics import rk4_energy_factor, summarize
-from lgvi_jax.scenes import get_scene
 from lgvi_jax.sweep import (
     KILL_HOOK_ENV,
     SweepConfig,
@@ -29,6 +28,7 @@ from lgvi_jax.sweep import (
     run_sweep,
     sweep_method,
 )
+from lgvi_jax.systems import get_system
 
 DT = 5e-3
 N_STEPS = 200
@@ -191,11 +191,11 @@ def test_failed_trajectory_is_flagged_and_isolated(car):
 
 
 def test_sweep_api_outputs_and_summary(tmp_path):
-    scene = get_scene("oscillator")
-    model, s0 = scene.build({})
+    spec = get_system("oscillator")
+    model, s0 = spec.build({})
     config = SweepConfig(system="oscillator", methods=("verlet", "rk4"), dts=(0.1, 0.05),
                          t_final=10.0, n=5, perturb=0.1, seed=0, chunk=2, sample_every=3)
-    summary = run_sweep(config, model, s0, scene.method, tmp_path, progress=False)
+    summary = run_sweep(config, model, s0, spec.method, tmp_path, progress=False)
     assert summary["chunks_computed"] == 2 * 2 * 3 and summary["chunks_skipped"] == 0
     for name in ("manifest.json", "trajectories.csv", "summary.json", "summary.md",
                  "energy_error.png"):
@@ -320,10 +320,10 @@ def test_unwritable_out_dir_is_refused(tmp_path, capsys):
     err = capsys.readouterr().err
     assert code == 2 and "cannot create folder" in err and "Traceback" not in err
     with pytest.raises(SweepError, match="cannot create folder"):
-        scene = get_scene("oscillator")
-        model, s0 = scene.build({})
+        spec = get_system("oscillator")
+        model, s0 = spec.build({})
         run_sweep(SweepConfig("oscillator", ("verlet",), (0.1,), 1.0, 2, 0.0, 0), model, s0,
-                  scene.method, blocker / "sub", progress=False)
+                  spec.method, blocker / "sub", progress=False)
 
 
 def test_a_sweep_started_with_engine_in_its_manifest_resumes(tmp_path, capsys):

@@ -13,7 +13,7 @@ from lgvi_jax.studies import work_precision as wp
 
 @pytest.fixture(scope="module")
 def oscillator():
-    return wp.make_system("oscillator")
+    return wp.make_case("oscillator")
 
 
 @pytest.mark.parametrize(("name", "order", "steps"),
@@ -25,7 +25,7 @@ def test_harness_shows_the_order(oscillator, name, order, steps):
 
 
 def test_metrics_match_independent_computation(oscillator):
-    method = wp.get_scene("oscillator").method("rk4")
+    method = wp.get_system("oscillator").method("rk4")
     raw = wp.run_ours(oscillator, "rk4", method, 0.05, 10.0, 100, repeats=1)
     got = wp.measure(oscillator, raw, 10.0)
     q = np.asarray(raw["states"].q)[:, 0]

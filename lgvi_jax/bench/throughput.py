@@ -197,8 +197,8 @@ def _throughput(systems, methods, engines, steps, batch, repeats, nb, log) -> li
     rows: list[dict] = []
     numba_rows: dict[str, dict] = {}
     for system in systems:
-        scene = lj.scenes.get_scene(system)
-        model, s0 = scene.build()
+        spec = lj.systems.get_system(system)
+        model, s0 = spec.build()
         seen = set()
         for name in methods:
             for engine in engines:
@@ -349,7 +349,7 @@ def _sweep_end_to_end(systems, steps: int, batch: int, nb, log) -> list[dict]:
                "energy_error_max": summary["rows"][0]["energy_error_max_max"],
                "numba_run_s": None}
         if nb is not None and system == "car-pendulum":
-            model, s0 = lj.scenes.get_scene(system).build()
+            model, s0 = lj.systems.get_system(system).build()
             arrays = _numpy_states(initial_conditions(model, s0, batch, PERTURB, SEED))
             params = nb.params_from_model(model)
             row["numba_run_s"], _, _ = _timed(

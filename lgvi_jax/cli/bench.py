@@ -15,18 +15,18 @@ from ._common import UsageError, _csv_list, _positive_int, configure_devices
 def cmd_bench(args: argparse.Namespace) -> int:
     configure_devices(args.devices)
     from ..bench.throughput import ENGINE_CHOICES, PARTS, run
-    from ..scenes import SCENES
+    from ..systems import SYSTEMS
 
     systems = tuple(_csv_list(args.systems, str, "--systems"))
     for s in systems:
-        if s not in SCENES or s == "oscillator":
+        if s not in SYSTEMS or s == "oscillator":
             raise UsageError(f"--systems {s!r}: choose from "
-                             f"{', '.join(k for k in SCENES if k != 'oscillator')}")
+                             f"{', '.join(k for k in SYSTEMS if k != 'oscillator')}")
     methods = tuple(_csv_list(args.methods, str, "--methods")) if args.methods else None
     for m in methods or ():
         for s in systems:
             try:
-                SCENES[s].method(m)
+                SYSTEMS[s].method(m)
             except ValueError as err:
                 raise UsageError(f"--methods: {err}") from None
     engines = tuple(_csv_list(args.engines, str, "--engines")) if args.engines else None

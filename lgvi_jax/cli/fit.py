@@ -1,6 +1,6 @@
 """``lgvi-jax fit SYSTEM --data OBS.npz``: fit a rigid-body model's parameters (inertia,
 mass, ..., initial velocities) to observed attitudes (and, for the car-pendulum, cart
-positions) by differentiating a variational integrator's rollout; ``SYSTEM`` is a scene
+positions) by differentiating a variational integrator's rollout; ``SYSTEM`` is a system
 with a rigid-body model (``car-pendulum``, ``heavy-top``, ``free-rigid-body``). Writes the
 fit to ``--out`` (.json) and prints it (``--json``: one object). Exit status 1 when a
 rollout fails (the last good iterate is written), 2 on bad input."""
@@ -32,38 +32,38 @@ FIT_INIT_NAMES = ("J", "rho_c", "m", "M", "g", "omega0", "v0")
 
 
 def fit_systems() -> list[str]:
-    """The scenes ``fit`` accepts: those whose model is a rigid-body model."""
+    """The systems ``fit`` accepts: those whose model is a rigid-body model."""
     from ..models import AbstractRigidBodyModel
-    from ..scenes import SCENES
+    from ..systems import SYSTEMS
 
-    return [name for name, scene in SCENES.items()
-            if isinstance(scene.build()[0], AbstractRigidBodyModel)]
+    return [name for name, spec in SYSTEMS.items()
+            if isinstance(spec.build()[0], AbstractRigidBodyModel)]
 
 
 def _scene(name: str):
     from ..models import AbstractRigidBodyModel
-    from ..scenes import SCENES
+    from ..systems import SYSTEMS
 
     valid = fit_systems()
-    scene = SCENES.get(name)
-    if scene is None or not isinstance(scene.build()[0], AbstractRigidBodyModel):
-        why = ("unknown system" if scene is None else
+    spec = SYSTEMS.get(name)
+    if spec is None or not isinstance(spec.build()[0], AbstractRigidBodyModel):
+        why = ("unknown system" if spec is None else
                "no rigid-body model to fit (fit identifies a rigid body from its observed "
                "attitudes) in system")
         raise UsageError(f"{why} {name!r}; valid systems: {', '.join(valid)}")
-    return scene
+    return spec
 
 
 def cmd_fit(args: argparse.Namespace) -> int:
     from ..identify import fit, fittable, load_observations
 
-    scene = _scene(args.system)
-    if args.method not in scene.methods:
-        raise UsageError(f"--method {args.method!r} is not available for {scene.name}; "
-                         f"choose from: {', '.join(scene.methods)}")
+    spec = _scene(args.system)
+    if args.method not in spec.methods:
+        raise UsageError(f"--method {args.method!r} is not available for {spec.name}; "
+                         f"choose from: {', '.join(spec.methods)}")
     if not math.isfinite(args.dt) or args.dt <= 0:
         raise UsageError(f"--dt must be a finite number > 0, got {args.dt!r}")
-    default_model = scene.build()[0]
+    default_model = spec.build()[0]
     valid = fittable(default_model)
     dof = default_model.dof
     names = _csv_list(args.fit, str, "--fit")
@@ -72,7 +72,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
     for name in names:
         if name not in valid:
             raise UsageError(f"--fit {name!r}: choose from {', '.join(valid)} (for "
-                             f"{scene.name})")
+                             f"{spec.name})")
     if len(set(names)) != len(names):
         raise UsageError(f"--fit {args.fit!r}: a name is given twice")
     if args.lr is not None and not (math.isfinite(args.lr) and args.lr > 0):
@@ -103,7 +103,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
     except ValueError as err:
         raise UsageError(f"--data {err}") from None
     try:
-        model, _ = scene.build({k: v for k, v in init.items() if k not in ("omega0", "v0")})
+        model, _ = spec.build({k: v for k, v in init.items() if k not in ("omega0", "v0")})
     except ValueError as err:
         raise UsageError(f"--init: {err}") from None
     _check_writable_file(out)
@@ -114,7 +114,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
     except ValueError as err:
         raise UsageError(str(err)) from None
     report = {
-        "system": scene.name,
+        "system": spec.name,
         "data": str(data),
         **result.to_json(),
         "observations": int(np.size(obs.t)),
@@ -129,7 +129,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
         fitted = ", ".join(f"{k} = {np.round(report['values'][k], 6).tolist()}"
                            for k in names if k != "J")
         about = "about the pivot" if "rho_c" in valid else "about the mass centre"
-        print(f"{scene.name} / {result.method}: fitted {', '.join(names)} to "
+        print(f"{spec.name} / {result.method}: fitted {', '.join(names)} to "
               f"{report['observations']} observations with {args.optimizer}, "
               f"{result.iterations} iterations ({result.stopped}) in "
               f"{result.wall_time_s:.3g} s\n"
@@ -155,7 +155,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "rollout; writes FIT.json. OBS.npz: t (n,), R (n,3,3), R0 (3,3), omega0 (3,); "
         "for car-pendulum also q (n,2), q0 (2,), v0 (2,).")
     fi.add_argument("system", metavar="SYSTEM",
-                    help="car-pendulum, heavy-top or free-rigid-body (a scene with a "
+                    help="car-pendulum, heavy-top or free-rigid-body (a system with a "
                     "rigid-body model)")
     fi.add_argument("--data", required=True, metavar="OBS.npz", help="observations (.npz)")
     fi.add_argument("--method", required=True, help="integrator (see `lgvi-jax info`)")
@@ -167,7 +167,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     fi.add_argument("--init", action="append", metavar="NAME=V1[,V2...]",
                     help="starting value of a fitted quantity, or value of a fixed one "
                     "(repeatable; J: 9 numbers row-major, about the pivot; default: the "
-                    "scene's values, the paper's for car-pendulum and heavy-top)")
+                    "system's values, the paper's for car-pendulum and heavy-top)")
     fi.add_argument("--iterations", type=_positive_int, default=300, metavar="N",
                     help="most optimiser iterations (default 300)")
     fi.add_argument("--lr", type=_float, default=None,

@@ -9,18 +9,18 @@ import argparse
 
 def cmd_info(args: argparse.Namespace) -> int:
     from ..integrators import SCHEMES
-    from ..scenes import SCENES
+    from ..systems import SYSTEMS
 
-    for scene in SCENES.values():
-        print(f"{scene.name}: {scene.description}")
+    for spec in SYSTEMS.values():
+        print(f"{spec.name}: {spec.description}")
         print("  methods:")
-        for name, make in scene.methods.items():
+        for name, make in spec.methods.items():
             print(f"    {name:<11} {make().describe()}")
-        composable = [n for n, make in scene.methods.items() if make().symmetric]
+        composable = [n for n, make in spec.methods.items() if make().symmetric]
         print(f"    METHOD@ORDER (4, 6, 8) or METHOD@SCHEME ({', '.join(SCHEMES)}): a "
               f"symmetric composition of {', '.join(composable)}")
         print("  --set parameters:")
-        for p in scene.parameters:
+        for p in spec.parameters:
             default = ",".join(f"{v:g}" for v in p.default)
             print(f"    {p.name:<11} {p.size} number(s), default {default}: {p.doc}")
     return 0

@@ -49,17 +49,17 @@ def energy_error_line(summary: dict[str, Any]) -> str:
 def cmd_simulate(args: argparse.Namespace) -> int:
     from ..diagnostics import summarize
     from ..integrators import with_scalar_newton
-    from ..scenes import get_scene
     from ..simulate import simulate_timed
+    from ..systems import get_system
 
-    scene = get_scene(args.system)
+    spec = get_system(args.system)
     try:
         # As in `sweep`: the Lie-group VIs solved on scalars (the same solutions to
         # round-off; one trajectory several times faster for a longer compile, docs/cli.md).
-        method = with_scalar_newton(scene.method(args.method))
+        method = with_scalar_newton(spec.method(args.method))
     except ValueError as err:
-        detail = str(err).removeprefix(f"{scene.name}: ")
-        raise UsageError(f"--method {args.method!r} is not available for {scene.name}: "
+        detail = str(err).removeprefix(f"{spec.name}: ")
+        raise UsageError(f"--method {args.method!r} is not available for {spec.name}: "
                          f"{detail}") from None
     n_steps = steps_for(args.dt, args.t_final)
     if n_steps % args.save_every:
@@ -71,7 +71,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         raise UsageError(f"--out {out}: expected a file name ending in .npz")
     overrides = parse_set(args.set)
     try:
-        model, state0 = scene.build(overrides)
+        model, state0 = spec.build(overrides)
     except ValueError as err:
         raise UsageError(str(err)) from None
     _check_writable_file(out)  # last: nothing is created on disk for a rejected command
@@ -80,7 +80,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     )
     summary = summarize(traj)
     config = {
-        "system": scene.name,
+        "system": spec.name,
         "method": method.name,
         "dt": args.dt,
         "t_final": args.t_final,
@@ -88,7 +88,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         "save_every": args.save_every,
         "parameters": {k: v.tolist() for k, v in overrides.items()},
     }
-    arrays = scene.arrays(model, traj)
+    arrays = spec.arrays(model, traj)
     arrays["result"] = np.asarray(traj.result)
     arrays["newton_iterations"] = np.asarray(traj.newton_steps)
     arrays["config_json"] = np.asarray(json.dumps(config))
@@ -106,7 +106,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         print(json.dumps(report))
     else:
         print(
-            f"{scene.name} / {method.describe()}: {n_steps} steps of {args.dt:g} "
+            f"{spec.name} / {method.describe()}: {n_steps} steps of {args.dt:g} "
             f"in {timing['run_s']:.3g} s ({timing['steps_per_second']:.3g} steps/s, "
             f"compiled in {timing['compile_s']:.3g} s)\n"
             f"relative energy error: {energy_error_line(summary)}\n"
@@ -120,10 +120,10 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``simulate`` command to the subcommands ``sub``."""
-    from ..scenes import SCENES
+    from ..systems import SYSTEMS
 
     sim = sub.add_parser("simulate", help="integrate one system with one method")
-    sim.add_argument("system", choices=list(SCENES), help="the system to integrate")
+    sim.add_argument("system", choices=list(SYSTEMS), help="the system to integrate")
     sim.add_argument("--method", required=True,
                      help="integrator, or METHOD@ORDER for a composition, e.g. lgvi@6 "
                      "(see `lgvi-jax info`)")

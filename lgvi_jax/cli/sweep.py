@@ -51,13 +51,13 @@ def cmd_sweep(args: argparse.Namespace) -> int:
         _plot_worker.start()
     import jax
 
-    from ..scenes import get_scene
     from ..sweep import SweepConfig, SweepError, run_sweep
+    from ..systems import get_system
 
-    scene = get_scene(args.system)
+    spec = get_system(args.system)
     overrides = parse_set(args.set)
     config = SweepConfig(
-        system=scene.name,
+        system=spec.name,
         methods=tuple(_csv_list(args.method, str, "--method")),
         dts=tuple(_csv_list(args.dt, float, "--dt")),
         t_final=args.t_final, n=args.n, perturb=args.perturb, seed=args.seed,
@@ -66,8 +66,8 @@ def cmd_sweep(args: argparse.Namespace) -> int:
         chord=args.chord,
     )
     try:
-        config.validate(list(scene.methods))
-        model, state0 = scene.build(overrides)
+        config.validate(list(spec.methods))
+        model, state0 = spec.build(overrides)
     except (SweepError, ValueError) as err:
         raise UsageError(str(err)) from None
     quiet = args.json or index != 0  # in a distributed sweep, process 0 speaks for all
@@ -81,14 +81,14 @@ def cmd_sweep(args: argparse.Namespace) -> int:
 
     devices = jax.devices()
     where = (f" ({jax.process_count()} processes)" if jax.process_count() > 1 else "")
-    log(f"{scene.name}: {config.n} initial conditions x {len(config.methods)} method(s) x "
+    log(f"{spec.name}: {config.n} initial conditions x {len(config.methods)} method(s) x "
         f"{len(config.dts)} step(s) on {len(devices)} {devices[0].platform} device(s)"
         + where)
     try:
         from ..sweep import sweep_method
 
         def make_method(name):
-            return sweep_method(scene.name, name, config.chord)
+            return sweep_method(spec.name, name, config.chord)
 
         summary = run_sweep(config, model, state0, make_method, Path(args.out),
                             resume=args.resume, progress=not quiet, log=log, warn=warn)
@@ -118,14 +118,14 @@ def cmd_sweep(args: argparse.Namespace) -> int:
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``sweep`` command to the subcommands ``sub``."""
-    from ..scenes import SCENES
+    from ..systems import SYSTEMS
 
     sw = sub.add_parser(
         "sweep", help="batched energy-drift sweep over perturbed initial conditions",
         description="Integrate N initial conditions drawn around the system's default "
         "state with every method and step; per-trajectory structure metrics go to OUT "
         "chunk by chunk (resumable with --resume).")
-    sw.add_argument("system", choices=list(SCENES), help="the system to integrate")
+    sw.add_argument("system", choices=list(SYSTEMS), help="the system to integrate")
     sw.add_argument("--method", required=True, metavar="METHOD[,METHOD...]",
                     help="integrators, comma-separated (see `lgvi-jax info`)")
     sw.add_argument("--dt", required=True, metavar="DT[,DT...]",

@@ -6,7 +6,7 @@ symmetric base method, and their source. :func:`compose` builds the
 :class:`~lgvi_jax.integrators.composition.Composition` of a symmetric method to a given order
 (the scheme of :data:`DEFAULT_SCHEMES`) or with a named scheme; it refuses a base that is
 not symmetric or whose order the scheme would not raise. :func:`parse_method` and
-:func:`resolve_method` read the names the CLI, the scenes and the studies use: ``METHOD``,
+:func:`resolve_method` read the names the CLI, the systems and the studies use: ``METHOD``,
 ``METHOD@ORDER`` (4, 6, 8) and ``METHOD@SCHEME`` (``lgvi@6``, ``lgvi@kahan-li8``);
 :class:`MethodTable` is a table of method factories that accepts those names too.
 

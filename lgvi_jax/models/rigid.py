@@ -231,6 +231,6 @@ class AbstractRigidBodyModel(eqx.Module):
 
 @eqx.filter_jit
 def _momenta(model, R, omega, q, v):
-    """``model.momenta`` compiled as one program: called eagerly (a scene's default state),
+    """``model.momenta`` compiled as one program: called eagerly (a system's default state),
     its autodiff would run op by op, each op compiled on its own."""
     return model.momenta(R, omega, q, v)

@@ -1,4 +1,4 @@
-r"""Rigid-body scenes: free rigid body, heavy top, and the paper's 3D car-pendulum.
+r"""Rigid-body models: free rigid body, heavy top, and the paper's 3D car-pendulum.
 
 Each defines only its energies (in the matrix form of :mod:`lgvi_jax.models.rigid`), its
 ``state(...)`` (the initial state from an initial attitude and velocities, defaulting to the

@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any
 
 #: The methods the work-precision and stability studies run on SO(3) x R^n (the
-#: car-pendulum) and on R^n (the oscillator), by scene name; names that do not resolve are
+#: car-pendulum) and on R^n (the oscillator), by system name; names that do not resolve are
 #: skipped and listed in the studies' summaries.
 RIGID_METHOD_NAMES: tuple[str, ...] = (
     "lgvi", "hamel", "hamel-cayley", "hamel-exact", "hamel-cayley-exact", "rk4", "gl4",

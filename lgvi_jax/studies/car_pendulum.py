@@ -665,7 +665,7 @@ def verdicts(table: dict, sweep_res: dict, long: dict) -> dict:
         "claim": "the Hamel VI keeps the energy better than the general LGVI",
         "verdict": "confirmed" if en_all[0] else "refuted" if en_all[1] else "partly",
         "evidence": "max |H − H₀| over 5 s, hamel / lgvi: " + detail
-        + f"; paper scene (50 s, h = 5e-3): hamel {table['hamel']['max_energy_error']:.2e}, "
+        + f"; paper state (50 s, h = 5e-3): hamel {table['hamel']['max_energy_error']:.2e}, "
         f"lgvi {table['lgvi']['max_energy_error']:.2e} ({'hamel' if paper else 'lgvi'} "
         "smaller). Which is smaller depends on the state: both errors are O(h²) with "
         "different constants",
@@ -710,7 +710,7 @@ def write_summary(results: dict, out: Path) -> str:
         "",
         " ".join(f"![{name.split('.')[0]}]({name})" for name in results["motion_figures"]),
         "",
-        "Paper scene, 50 s at h = 5e-3:",
+        "Paper state, 50 s at h = 5e-3:",
         "",
         "| method | max \\|ΔH\\| [J] | max \\|ΔH/H\\| | max \\|Δp\\| | max \\|ΔL_z\\| "
         "| max ‖RᵀR − I‖_F | Newton its/step (mean, max) | steps/s |",
@@ -759,7 +759,7 @@ def run(out_dir: Path | str, *, quick: bool = False, log: Callable = print) -> d
     out.mkdir(parents=True, exist_ok=True)
     cfg = config(quick)
     model = CarPendulum(g=cfg["g"])
-    log("  paper scene, figures 5-11 ...")
+    log("  paper state, figures 5-11 ...")
     runs, table = paper_runs(model, cfg, log)
     paper_figures(model, {k: traj for k, (traj, _) in runs.items()}, cfg, out)
     log("  3D view of the motion ...")

@@ -1,6 +1,6 @@
 """Inertia identification: recover the pendulum's inertia from observed motion.
 
-Synthetic observations come from the independent reference (:mod:`lgvi_jax.reference`:
+Synthetic observations come from the independent reference (:mod:`lgvi_jax.systems.car_pendulum`:
 hand-derived equations in NumPy, SciPy DOP853 at 1e-13), not from the integrators under
 test, for a pendulum whose inertia about its mass centre is diag(0.03, 0.05, 0.04) kg m²
 (the paper's is 0.04 I); everything else as in the paper (m = M = 1, ρ_c = (0.25, 0.25, 1),

@@ -1,6 +1,6 @@
 r"""Where each method fails: increase the step until the run breaks, and say why.
 
-For every method of ours (names resolved through ``lgvi_jax.scenes.get_scene(...).method``,
+For every method of ours (names resolved through ``lgvi_jax.systems.get_system(...).method``,
 composed names such as ``lgvi@6`` included once they resolve), on the car-pendulum (the
 paper's state) and on the harmonic oscillator (``m = k = 1``, ``q0 = 1``, ``p0 = 0``), the
 step ``h`` is scanned on a geometric grid and the boundary is then bisected between the
@@ -58,8 +58,8 @@ from lgvi_jax._io import atomic_write_text
 from lgvi_jax.diagnostics import environment
 from lgvi_jax.models import CarPendulum, HarmonicOscillator, PhaseState
 from lgvi_jax.plotting import figure, method_style, positive, save
-from lgvi_jax.scenes import resolve_methods
 from lgvi_jax.studies import EUCLIDEAN_METHOD_NAMES, RIGID_METHOD_NAMES, mark_complete, script_main
+from lgvi_jax.systems import resolve_methods
 from lgvi_jax.trajectory import RESULTS
 
 QUICK_RIGID = ("rk4",)

@@ -64,15 +64,15 @@ class SweepConfig:
         """Accept ``METHOD@ORDER`` / ``METHOD@SCHEME`` for a listed ``METHOD`` (resolved
         by the system's method table); raise :class:`SweepError` otherwise."""
         from ..integrators import parse_method
-        from ..scenes import SCENES
+        from ..systems import SYSTEMS
 
         try:
             base, spec = parse_method(name)
         except ValueError as err:
             raise SweepError(f"--method: {err}") from None
-        if spec is not None and base in valid_methods and self.system in SCENES:
+        if spec is not None and base in valid_methods and self.system in SYSTEMS:
             try:
-                SCENES[self.system].method(name)
+                SYSTEMS[self.system].method(name)
             except ValueError as err:
                 raise SweepError(f"--method: {err}") from None
             return
@@ -122,16 +122,16 @@ def sweep_method(system: str, name: str,
                  chord_matrix: ChordMatrix | str = ChordMatrix.EXACT, *,
                  scalar: bool = True) -> Any:
     """The integrator that ``lgvi-jax sweep SYSTEM --method NAME --chord CHORD`` runs: the
-    scene's method (``NAME`` may be a composition, ``lgvi@6``) with the chord matrix
+    system's method (``NAME`` may be a composition, ``lgvi@6``) with the chord matrix
     ``chord_matrix`` (``CHORD``), solved on scalars
     (:func:`~lgvi_jax.integrators.with_scalar_newton`, wherever its settings allow it:
     ``--chord exact``). ``scalar=False``: the autodiff engine on arrays throughout (the
     same equations; for ``lgvi-jax bench``'s comparison). Raises ``ValueError`` for an
     unknown method."""
     from ..integrators import Composition, with_chord_matrix, with_scalar_newton
-    from ..scenes import get_scene
+    from ..systems import get_system
 
-    method = with_chord_matrix(get_scene(system).method(name), chord_matrix)
+    method = with_chord_matrix(get_system(system).method(name), chord_matrix)
     if scalar:
         method = with_scalar_newton(method)
     elif isinstance(method, Composition):  # the array engine throughout

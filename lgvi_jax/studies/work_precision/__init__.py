@@ -4,14 +4,14 @@ For the car-pendulum (the paper's initial state, and a state with non-zero horiz
 momentum) and the harmonic oscillator, this experiment runs
 
 * **ours**: every method of :data:`RIGID_METHOD_NAMES` / :data:`EUCLIDEAN_METHOD_NAMES` that
-  resolves through ``lgvi_jax.scenes.get_scene(system).method(name)`` (composed names such as
+  resolves through ``lgvi_jax.systems.get_system(system).method(name)`` (composed names such as
   ``lgvi@6`` enter automatically once they resolve), each over a range of fixed steps;
 * **diffrax** (optional, the ``bench`` extra): ``Tsit5`` and ``Dopri8``, adaptive
   (``PIDController(rtol, atol)``, ``rtol = atol`` over a range) and fixed-step
   (``ConstantStepSize``), on the library's continuous equations ``model.vector_field``
   (for the car-pendulum: R embedded as 9 numbers), jitted, ``SaveAt(ts=...)``;
 * **SciPy** ``solve_ivp`` (``DOP853``, ``RK45``, ``rtol = atol`` over a range) on the
-  hand-derived NumPy equations :meth:`lgvi_jax.reference.HandReference.rhs` (state
+  hand-derived NumPy equations :meth:`lgvi_jax.systems.car_pendulum.HandReference.rhs` (state
   ``(R, ω, q, v)``) for the car-pendulum and on ``(q̇, ṗ) = (p/m, −kq)`` for the
   oscillator, with ``t_eval`` at the save times: what a fair, idiomatic SciPy user writes
   (NumPy right-hand side, no JAX).
@@ -22,7 +22,7 @@ for JAX; SciPy needs none), waiting for the result (``block_until_ready``), best
 equally spaced times, and all metrics are computed from those saved states by the same code:
 
 * ``position error`` at t = 10 s and t = 50 s: the pendulum mass centre
-  ``(x, y, 0) + R ρ_c`` against :class:`~lgvi_jax.reference.HandReference` (hand-derived
+  ``(x, y, 0) + R ρ_c`` against :class:`~lgvi_jax.systems.car_pendulum.HandReference` (hand-derived
   equations, DOP853 at ``rtol = atol = 1e-13``, piecewise, no interpolation); for the
   oscillator ``|q − q_exact|`` against the closed-form solution. The reference's own error is
   estimated by comparing it with the same solve at ``1e-12`` (``reference_uncertainty``);
@@ -53,7 +53,7 @@ Run:  ``python -m lgvi_jax.studies.work_precision --out DIR [--quick]`` or
 Layout (each module imports only those listed after it): :mod:`.report` (charts,
 ``summary.md``), :mod:`.sweeps` (the plan, :func:`config`, and the sweeps of each system),
 :mod:`.metrics` (errors, drift, invariants, regimes), :mod:`.runners` (ours, diffrax, SciPy;
-timing; compiled functions), :mod:`.systems` (:class:`System`, the references). This module
+timing; compiled functions), :mod:`.cases` (:class:`Case`, the references). This module
 holds :func:`run`; ``diffrax`` is :data:`runners.diffrax` (``None`` when not installed: set
 it there to run without it).
 """
@@ -67,10 +67,11 @@ from typing import Any
 
 import numpy as np
 
-from lgvi_jax.scenes import get_scene, resolve_methods
 from lgvi_jax.studies import mark_complete
+from lgvi_jax.systems import get_system, resolve_methods
 
-from . import metrics, report, runners, sweeps, systems
+from . import cases, metrics, report, runners, sweeps
+from .cases import CHECK_TIMES, Case, make_case
 from .metrics import measure, observed_error_order, regimes
 from .report import (
     _jsonable,
@@ -109,16 +110,47 @@ from .sweeps import (
     _sweep_system,
     config,
 )
-from .systems import CHECK_TIMES, System, make_system
 
 __all__ = [
-    "CHECK_TIMES", "DIFFRAX_FIXED", "DIFFRAX_LONG_TOLS", "DIFFRAX_MAX_STEPS", "DIFFRAX_TOLS",
-    "LONG_STEPS", "LONG_STEPS_OVERRIDE", "MAX_SAVES", "OSC_STEPS", "QUICK_EUCLIDEAN",
-    "QUICK_RIGID", "REPEATS", "RIGID_STEPS", "SCIPY_LONG_TOLS", "SCIPY_TOLS", "TARGETS",
-    "System", "charts", "config", "diffrax", "environment", "get_scene", "make_system",
-    "measure", "method_table", "metrics", "observed_error_order", "recommendations",
-    "regimes", "report", "resolve_methods", "run", "run_diffrax", "run_ours", "run_scipy",
-    "runners", "sweeps", "systems", "write_summary",
+    "CHECK_TIMES",
+    "DIFFRAX_FIXED",
+    "DIFFRAX_LONG_TOLS",
+    "DIFFRAX_MAX_STEPS",
+    "DIFFRAX_TOLS",
+    "LONG_STEPS",
+    "LONG_STEPS_OVERRIDE",
+    "MAX_SAVES",
+    "OSC_STEPS",
+    "QUICK_EUCLIDEAN",
+    "QUICK_RIGID",
+    "REPEATS",
+    "RIGID_STEPS",
+    "SCIPY_LONG_TOLS",
+    "SCIPY_TOLS",
+    "TARGETS",
+    "Case",
+    "cases",
+    "charts",
+    "config",
+    "diffrax",
+    "environment",
+    "get_system",
+    "make_case",
+    "measure",
+    "method_table",
+    "metrics",
+    "observed_error_order",
+    "recommendations",
+    "regimes",
+    "report",
+    "resolve_methods",
+    "run",
+    "run_diffrax",
+    "run_ours",
+    "run_scipy",
+    "runners",
+    "sweeps",
+    "write_summary",
 ]
 
 
@@ -133,12 +165,12 @@ def run(out_dir: Path | str, *, quick: bool = False, log: Callable = print) -> d
     if runners.diffrax is None:
         log("  diffrax is not installed: its runs are skipped")
     for key in cfg["systems"]:
-        system = make_system(key, cfg["reference_rtol"])
+        system = make_case(key, cfg["reference_rtol"])
         log(f"  {system.title} ...")
         res = _sweep_system(system, cfg, log)
         res["title"] = system.title
         if system.rigid and cfg["reference_check_rtol"] is not None:
-            coarse = make_system(key, cfg["reference_check_rtol"])
+            coarse = make_case(key, cfg["reference_check_rtol"])
             res["reference_uncertainty"] = float(np.linalg.norm(
                 coarse.reference_position(50.0) - system.reference_position(50.0)))
         systems[key] = res

@@ -10,13 +10,13 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from lgvi_jax.scenes import get_scene
+from lgvi_jax.systems import get_system
 
+from .cases import CHECK_TIMES, Case
 from .runners import run_ours
-from .systems import CHECK_TIMES, System
 
 
-def measure(system: System, run: dict, T: float, positions: bool = True) -> dict:
+def measure(system: Case, run: dict, T: float, positions: bool = True) -> dict:
     """The metrics of a raw run (the package docstring), as plain numbers; ``series`` keeps the
     invariant errors against time (for the long-run chart). ``positions=False`` (the long
     horizon): no comparison with the reference."""
@@ -53,11 +53,11 @@ def measure(system: System, run: dict, T: float, positions: bool = True) -> dict
     return out
 
 
-def observed_error_order(system: System, name: str, steps: Sequence[float],
+def observed_error_order(system: Case, name: str, steps: Sequence[float],
                          T: float = 10.0) -> tuple[float, list[float]]:
     """The harness's error measurement on a small case: position error at ``T`` for our
     method ``name`` at each step, and the least-squares slope of log error against log h."""
-    method = get_scene(system.scene).method(name)
+    method = get_system(system.system_name).method(name)
     errors = []
     for h in steps:
         raw = run_ours(system, name, method, h, T, 100, repeats=1)

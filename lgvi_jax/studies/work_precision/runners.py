@@ -19,7 +19,7 @@ import numpy as np
 import lgvi_jax
 from lgvi_jax import rollout
 
-from .systems import System
+from .cases import Case
 
 try:  # optional peer (the ``bench`` extra)
     import diffrax
@@ -86,14 +86,14 @@ def _grid(T: float, n_saves: int, h: float | None = None) -> tuple[np.ndarray, i
     return t, k
 
 
-def run_ours(system: System, name: str, method, h: float, T: float, n_saves: int,
+def run_ours(system: Case, name: str, method, h: float, T: float, n_saves: int,
              repeats: int = REPEATS) -> dict:
     """One timed run of our ``method`` at step ``h`` over ``[0, T]``; returns the raw run
     (saved times and states, wall time, compile time, result)."""
     t, k = _grid(T, n_saves, h)
     args = (system.model, method, system.state0, jnp.float64(h), jnp.int32(k),
             jnp.int32(n_saves))
-    key = ("ours", name, system.scene)
+    key = ("ours", name, system.system_name)
     compile_s = 0.0
     if key not in _COMPILED:
         start = time.perf_counter()
@@ -140,13 +140,13 @@ def _diffrax_fn(solver: str, adaptive: bool, batched: bool = False):
     return jax.jit(solve)
 
 
-def run_diffrax(system: System, solver: str, adaptive: bool, x: float, T: float,
+def run_diffrax(system: Case, solver: str, adaptive: bool, x: float, T: float,
                 n_saves: int, repeats: int = REPEATS) -> dict:
     """One timed diffrax run: ``x`` = ``rtol = atol`` (adaptive) or the fixed step."""
     t = np.linspace(0.0, T, n_saves + 1)
     args = (system.model, system.state0, jnp.asarray(t), jnp.float64(x))
     fn = _diffrax_fn(solver, adaptive)
-    key = ("diffrax", solver, adaptive, system.scene, n_saves)
+    key = ("diffrax", solver, adaptive, system.system_name, n_saves)
     compile_s = 0.0
     if key not in _COMPILED:
         start = time.perf_counter()
@@ -165,7 +165,7 @@ def run_diffrax(system: System, solver: str, adaptive: bool, x: float, T: float,
 # ----------------------------------------------------------------------------- SciPy
 
 
-def run_scipy(system: System, solver: str, tol: float, T: float, n_saves: int,
+def run_scipy(system: Case, solver: str, tol: float, T: float, n_saves: int,
               repeats: int = 1) -> dict:
     """One timed ``solve_ivp`` run (NumPy right-hand side, ``t_eval`` at the save times)."""
     from scipy.integrate import solve_ivp

@@ -13,13 +13,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from lgvi_jax.scenes import resolve_methods
 from lgvi_jax.studies import EUCLIDEAN_METHOD_NAMES, RIGID_METHOD_NAMES
+from lgvi_jax.systems import resolve_methods
 
 from . import runners
+from .cases import Case, _scipy_y0
 from .metrics import measure
 from .runners import _diffrax_fn, _time_best, run_diffrax, run_ours, run_scipy
-from .systems import System, _scipy_y0
 
 #: Quick mode (tests, ``reproduce --quick``): a few methods, short horizons.
 QUICK_RIGID = ("lgvi",)
@@ -91,11 +91,11 @@ def _order_key(order: int) -> str:
     return "2" if order <= 2 else "4" if order <= 5 else "6"
 
 
-def _sweep_system(system: System, cfg: dict, log: Callable) -> dict:
+def _sweep_system(system: Case, cfg: dict, log: Callable) -> dict:
     """All runs of one system at the short horizons; returns ``{"runs": [...], ...}``."""
     rigid = system.rigid
     names = cfg["rigid_methods"] if rigid else cfg["euclidean_methods"]
-    methods, skipped = resolve_methods(system.scene, names)
+    methods, skipped = resolve_methods(system.system_name, names)
     steps_by_order = cfg["rigid_steps"] if rigid else cfg["oscillator_steps"]
     runs = []
     for T in cfg["horizons"]:
@@ -128,12 +128,12 @@ def _sweep_system(system: System, cfg: dict, log: Callable) -> dict:
     return {"runs": runs, "skipped_methods": skipped, "methods": list(methods)}
 
 
-def _long_runs(system: System, cfg: dict, log: Callable) -> list[dict]:
+def _long_runs(system: Case, cfg: dict, log: Callable) -> list[dict]:
     """The long horizon: one step per method of ours, a few tolerances per peer."""
     T = cfg["long_horizon"]
     n_saves = cfg["saves"]["long"]
     names = cfg["rigid_methods"] if system.rigid else cfg["euclidean_methods"]
-    methods, _ = resolve_methods(system.scene, names)
+    methods, _ = resolve_methods(system.system_name, names)
     kind = "rigid" if system.rigid else "oscillator"
     table, override = LONG_STEPS[kind], LONG_STEPS_OVERRIDE[kind]
     if cfg["quick"]:
@@ -159,7 +159,7 @@ def _long_runs(system: System, cfg: dict, log: Callable) -> list[dict]:
     return runs
 
 
-def _batch(system: System, short: list[dict], cfg: dict, log: Callable) -> dict:
+def _batch(system: Case, short: list[dict], cfg: dict, log: Callable) -> dict:
     """Batch throughput at matched accuracy (the package docstring)."""
     from lgvi_jax.sweep import batch_arguments, initial_conditions
 
@@ -185,7 +185,7 @@ def _batch(system: System, short: list[dict], cfg: dict, log: Callable) -> dict:
     device = jax.devices()[:1]
     out = {"batch": B, "horizon": T, "target": target, "devices": [str(d) for d in device],
            "rows": []}
-    methods, _ = resolve_methods(system.scene, [r["method"] for r in ours])
+    methods, _ = resolve_methods(system.system_name, [r["method"] for r in ours])
     for r in ours:
         h = r["value"]
         fn, args = batch_arguments(system.model, methods[r["method"]], states, h,

@@ -1,8 +1,8 @@
-"""Scenes: a model, its settable parameters, its methods and its output arrays, by name.
+"""Systems by name: a model, its settable parameters, its methods and its output arrays, by name.
 
 This is the table behind ``lgvi-jax simulate SYSTEM ...``. The library itself never parses
 strings: the CLI turns ``--set NAME=V1,V2`` into float arrays and hands them to
-:meth:`Scene.build`, which validates them and returns ``(model, state0)``. A scene's
+:meth:`System.build`, which validates them and returns ``(model, state0)``. A system's
 parameters mix the model's physical parameters and the initial condition (``q0``, ``p0``,
 ``R0``, ``omega0``, ``v0``): its ``make`` builds the model from the first and the state from
 the second, with ``model.state(...)``.
@@ -17,17 +17,17 @@ from typing import Any
 import jax
 import numpy as np
 
-from . import so3
-from .integrators import EUCLIDEAN_METHODS, RIGID_METHODS, AbstractIntegrator, MethodTable
-from .models import CarPendulum, FreeRigidBody, HarmonicOscillator, HeavyTop
-from .models.rigid_bodies import PAPER_J, PAPER_OMEGA0, PAPER_R0, PAPER_RHO_C
+from .. import so3
+from ..integrators import EUCLIDEAN_METHODS, RIGID_METHODS, AbstractIntegrator, MethodTable
+from ..models import CarPendulum, FreeRigidBody, HarmonicOscillator, HeavyTop
+from ..models.rigid_bodies import PAPER_J, PAPER_OMEGA0, PAPER_R0, PAPER_RHO_C
 
-__all__ = ["SCENES", "Parameter", "Scene", "get_scene", "resolve_methods"]
+__all__ = ["SYSTEMS", "Parameter", "System", "get_system", "resolve_methods"]
 
 
 @dataclasses.dataclass(frozen=True)
 class Parameter:
-    """A settable quantity of a scene: ``size`` numbers, with a default and a description."""
+    """A settable quantity of a system: ``size`` numbers, with a default and a description."""
 
     name: str
     size: int
@@ -36,7 +36,7 @@ class Parameter:
 
 
 @dataclasses.dataclass(frozen=True)
-class Scene:
+class System:
     """A named system: how to build it, which methods apply, what a run saves.
 
     ``methods`` is a :class:`~lgvi_jax.integrators.MethodTable`: it lists the base methods
@@ -60,7 +60,7 @@ class Scene:
 
     def method(self, name: str) -> AbstractIntegrator:
         """The integrator called ``name``: a listed method, or ``METHOD@ORDER`` /
-        ``METHOD@SCHEME`` (e.g. ``lgvi@6``). ``ValueError`` naming the scene and the method
+        ``METHOD@SCHEME`` (e.g. ``lgvi@6``). ``ValueError`` naming the system and the method
         otherwise (unknown name or scheme, a base method that is not symmetric)."""
         table = self.methods if isinstance(self.methods, MethodTable) else MethodTable(
             self.methods)
@@ -148,8 +148,8 @@ def _car_pendulum_make(values):
 _R0_DOC = "initial attitude, body to inertial, 9 numbers row-major (must be in SO(3))"
 _J_DOC = "inertia about the pivot, 9 numbers row-major (symmetric, positive, triangle ineq.)"
 
-SCENES: dict[str, Scene] = {
-    "oscillator": Scene(
+SYSTEMS: dict[str, System] = {
+    "oscillator": System(
         name="oscillator",
         description="1D harmonic oscillator H = p^2/(2m) + k q^2/2 (paper, section 1)",
         parameters=(
@@ -164,7 +164,7 @@ SCENES: dict[str, Scene] = {
         make=_oscillator_make,
         arrays=_oscillator_arrays,
     ),
-    "free-rigid-body": Scene(
+    "free-rigid-body": System(
         name="free-rigid-body",
         description="free rigid body, L = ω·Jω/2 on SO(3) (invariants: energy, R Jω)",
         parameters=(
@@ -177,7 +177,7 @@ SCENES: dict[str, Scene] = {
         make=_free_body_make,
         arrays=_rigid_arrays,
     ),
-    "heavy-top": Scene(
+    "heavy-top": System(
         name="heavy-top",
         description="heavy top / 3D pendulum about a fixed pivot, e3 down (invariants: "
         "energy, vertical angular momentum)",
@@ -193,7 +193,7 @@ SCENES: dict[str, Scene] = {
         make=_heavy_top_make,
         arrays=_rigid_arrays,
     ),
-    "car-pendulum": Scene(
+    "car-pendulum": System(
         name="car-pendulum",
         description="the paper's 3D car-pendulum on SO(3) x R^2 (invariants: energy, cart "
         "momentum p, vertical angular momentum about the origin)",
@@ -215,23 +215,23 @@ SCENES: dict[str, Scene] = {
 }
 
 
-def get_scene(name: str) -> Scene:
-    """The scene called ``name`` (``ValueError`` listing the valid names otherwise)."""
-    if name not in SCENES:
-        raise ValueError(f"unknown system {name!r}; valid systems: {', '.join(SCENES)}")
-    return SCENES[name]
+def get_system(name: str) -> System:
+    """The system called ``name`` (``ValueError`` listing the valid names otherwise)."""
+    if name not in SYSTEMS:
+        raise ValueError(f"unknown system {name!r}; valid systems: {', '.join(SYSTEMS)}")
+    return SYSTEMS[name]
 
 
 def resolve_methods(system: str, names: Sequence[str]
                     ) -> tuple[dict[str, AbstractIntegrator], list[str]]:
     """``({name: integrator}, skipped)``: each name resolved by
-    ``get_scene(system).method(name)``; names that raise ``ValueError`` (not implemented in
+    ``get_system(system).method(name)``; names that raise ``ValueError`` (not implemented in
     this checkout, or not applicable) are skipped and listed."""
-    scene = get_scene(system)
+    spec = get_system(system)
     methods, skipped = {}, []
     for name in names:
         try:
-            methods[name] = scene.method(name)
+            methods[name] = spec.method(name)
         except ValueError:
             skipped.append(name)
     return methods, skipped

@@ -42,8 +42,8 @@ This module is the independent reference of the tests, of the identification and
 work-precision experiments. It uses only the model's parameters (as plain numbers) and the
 initial configuration and velocities ``(R0, ω0, q0, v0)``; none of the library's mechanics
 (autodiff momenta, velocities, vector field). The library enters only as the system under
-test. :func:`paper_scene` and :func:`moving_scene` are the two test problems: a
-:class:`ReferenceScene` holds the model, its initial condition, the library's initial state
+test. :func:`paper_problem` and :func:`moving_problem` are the two test problems: a
+:class:`ReferenceProblem` holds the model, its initial condition, the library's initial state
 (``state0``) and the reference started from the same condition (``reference()``).
 
 Needs SciPy (the ``dev`` and ``bench`` extras): imported when a solve is asked for.
@@ -58,7 +58,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["HandReference", "ReferenceScene", "moving_scene", "paper_scene"]
+__all__ = ["HandReference", "ReferenceProblem", "moving_problem", "paper_problem"]
 
 E3 = np.array([0.0, 0.0, 1.0])
 P = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
@@ -188,7 +188,7 @@ class HandReference:
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
-class ReferenceScene:
+class ReferenceProblem:
     """A car-pendulum problem: the model (its parameters) and the initial condition,
     attitude ``R0`` (3, 3), body angular velocity ``omega0`` (3,), cart position ``q0`` and
     velocity ``v0`` (2,), as float64 NumPy arrays."""
@@ -215,29 +215,29 @@ class ReferenceScene:
         return HandReference(self.model, **self.initial_condition)
 
 
-def _scene(model, **initial) -> ReferenceScene:
+def _scene(model, **initial) -> ReferenceProblem:
     cls = type(model)
     defaults = {"R0": cls.DEFAULT_R0, "omega0": cls.DEFAULT_OMEGA0, "q0": cls.DEFAULT_Q0,
                 "v0": cls.DEFAULT_V0}
     values = {k: np.asarray(initial.get(k, d), dtype=np.float64) for k, d in defaults.items()}
-    return ReferenceScene(model=model, **values)
+    return ReferenceProblem(model=model, **values)
 
 
-def paper_scene() -> ReferenceScene:
+def paper_problem() -> ReferenceProblem:
     """The paper's parameters and initial state (zero horizontal momentum)."""
-    from .models import CarPendulum
+    from ..models import CarPendulum
 
     return _scene(CarPendulum())
 
 
-def moving_scene() -> ReferenceScene:
+def moving_problem() -> ReferenceProblem:
     """The paper's parameters; non-zero horizontal momentum, a generic attitude, the cart
     away from the origin (so that ``x p_y − y p_x`` matters in the vertical angular
     momentum)."""
     import jax.numpy as jnp
 
-    from . import so3
-    from .models import CarPendulum
+    from .. import so3
+    from ..models import CarPendulum
 
     return _scene(CarPendulum(), q0=(0.7, -0.4), v0=(0.8, -0.3), omega0=(1.0, -0.5, 3.0),
                   R0=so3.exp(jnp.array([0.6, -0.9, 0.4])))

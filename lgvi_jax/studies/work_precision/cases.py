@@ -1,8 +1,9 @@
 """The test problems of the work-precision study and their references.
 
-:class:`System` holds a model, its initial state and how its runs are compared: the
+:class:`Case` holds a model, its initial state and how its runs are compared: the
 pendulum mass centre (car-pendulum) or ``q`` (oscillator) against the independent reference
-(:class:`~lgvi_jax.reference.HandReference`, DOP853; the oscillator's exact solution), the
+(:class:`~lgvi_jax.systems.car_pendulum.HandReference`, DOP853; the oscillator's exact
+solution), the
 invariants, and the problem as SciPy sees it (a NumPy right-hand side).
 """
 
@@ -19,21 +20,21 @@ import numpy as np
 
 from lgvi_jax import so3
 from lgvi_jax.models import HarmonicOscillator, PhaseState
-from lgvi_jax.reference import HandReference, moving_scene, paper_scene
+from lgvi_jax.systems.car_pendulum import HandReference, moving_problem, paper_problem
 
 #: The times at which positions are compared with the reference.
 CHECK_TIMES = (10.0, 50.0)
 
 
 @dataclasses.dataclass
-class System:
+class Case:
     """A test problem: the model, its initial state, how to compare with the reference.
     ``initial_condition``: for the car-pendulum, the ``(R0, omega0, q0, v0)`` that
     ``state0`` was built from, where the independent reference starts."""
 
     key: str
     title: str
-    scene: str
+    system_name: str
     model: Any
     state0: Any
     ref_rtol: float = 1e-13
@@ -42,7 +43,7 @@ class System:
 
     @property
     def rigid(self) -> bool:
-        return self.scene == "car-pendulum"
+        return self.system_name == "car-pendulum"
 
     def positions(self, states) -> np.ndarray:
         """Pendulum mass-centre positions (rigid) or ``q`` (oscillator), shape ``(n, d)``."""
@@ -105,23 +106,24 @@ def _from_hand(model, y):
     return jax.vmap(model.state_from_velocities)(R, y[:, 9:12], y[:, 12:14], y[:, 14:16])
 
 
-def make_system(key: str, ref_rtol: float = 1e-13) -> System:
+def make_case(key: str, ref_rtol: float = 1e-13) -> Case:
     """``car-paper`` (the paper's state), ``car-moving`` (non-zero horizontal momentum,
-    :func:`lgvi_jax.reference.moving_scene`) or ``oscillator`` (m = k = q0 = 1, p0 = 0)."""
+    :func:`lgvi_jax.systems.car_pendulum.moving_problem`) or ``oscillator`` (m = k = q0 = 1,
+    p0 = 0)."""
     if key in ("car-paper", "car-moving"):
-        scene, title = ((paper_scene(), "car-pendulum, paper state") if key == "car-paper"
-                        else (moving_scene(), "car-pendulum, moving cart"))
-        return System(key, title, "car-pendulum", scene.model, scene.state0, ref_rtol,
-                      scene.initial_condition)
+        problem, title = ((paper_problem(), "car-pendulum, paper state") if key == "car-paper"
+                          else (moving_problem(), "car-pendulum, moving cart"))
+        return Case(key, title, "car-pendulum", problem.model, problem.state0, ref_rtol,
+                    problem.initial_condition)
     if key == "oscillator":
         model = HarmonicOscillator()
-        return System(key, "harmonic oscillator", "oscillator", model, model.default_state(),
-                      ref_rtol)
-    raise ValueError(f"make_system: unknown system {key!r}; valid: car-paper, car-moving, "
+        return Case(key, "harmonic oscillator", "oscillator", model, model.default_state(),
+                    ref_rtol)
+    raise ValueError(f"make_case: unknown system {key!r}; valid: car-paper, car-moving, "
                      "oscillator")
 
 
-def _scipy_y0(system: System):
+def _scipy_y0(system: Case):
     """SciPy's problem for a (perturbed) state of the system: NumPy rhs and ``y0`` built
     from the state's velocities."""
     rhs, _ = system.scipy_problem()
