@@ -51,6 +51,15 @@ def script_main(run: Callable, description: str | None, argv: list[str] | None =
     return 0
 
 
+def write_summary_lines(out: Path, lines: list[str]) -> str:
+    """Write ``lines`` as the stage's ``out/summary.md`` (one per line); return the text."""
+    from .._io import atomic_write_text
+
+    text = "\n".join(lines) + "\n"
+    atomic_write_text(Path(out) / "summary.md", text)
+    return text
+
+
 def mark_complete(out: Path, results: Any, indent: int = 2) -> None:
     """Write ``out/results.json`` — last, after every figure and ``summary.md``: its presence
     marks the stage as complete (:mod:`lgvi_jax.reproduce` skips a completed stage)."""

@@ -40,13 +40,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from lgvi_jax import so3
-from lgvi_jax._io import atomic_write_text
 from lgvi_jax.diagnostics import drift_ratio, environment, observed_order
 from lgvi_jax.integrators import RIGID_METHODS, resolve_method
 from lgvi_jax.models import CarPendulum, RigidState
 from lgvi_jax.plotting import envelope, figure, positive, save, style_for
 from lgvi_jax.simulate import simulate_timed
-from lgvi_jax.studies import mark_complete, script_main
+from lgvi_jax.studies import mark_complete, script_main, write_summary_lines
 
 PAPER_METHODS = ("lgvi", "hamel")
 METHODS = ("lgvi", "hamel", "hamel-cayley", "hamel-exact", "rk4")
@@ -748,9 +747,7 @@ def write_summary(results: dict, out: Path) -> str:
     lines += ["", "**The paper's claims, measured:**", ""]
     for i, v in enumerate(results["verdicts"].values(), 1):
         lines.append(f"{i}. *{v['claim']}* — **{v['verdict']}**: {v['evidence']}.")
-    text = "\n".join(lines) + "\n"
-    atomic_write_text(out / "summary.md", text)
-    return text
+    return write_summary_lines(out, lines)
 
 
 def run(out_dir: Path | str, *, quick: bool = False, log: Callable = print) -> dict:

@@ -42,13 +42,12 @@ from pathlib import Path
 import numpy as np
 
 from lgvi_jax import identify
-from lgvi_jax._io import atomic_write_text
 from lgvi_jax.diagnostics import environment
 from lgvi_jax.inertia import centroidal_inertia, is_physical, pivot_inertia
 from lgvi_jax.models import CarPendulum, HeavyTop
 from lgvi_jax.models.rigid_bodies import PAPER_J, PAPER_RHO_C
 from lgvi_jax.plotting import figure, save
-from lgvi_jax.studies import mark_complete, script_main
+from lgvi_jax.studies import mark_complete, script_main, write_summary_lines
 
 J_C_TRUE = np.diag([0.03, 0.05, 0.04])
 NOISE = 1e-3
@@ -269,7 +268,7 @@ def write_summary(results: dict, out: Path) -> None:
         "",
         "Figures: `loss_curves.png`, `error_vs_step.png`.",
     ]
-    atomic_write_text(out / "summary.md", "\n".join(lines) + "\n")
+    write_summary_lines(out, lines)
 
 
 if __name__ == "__main__":

@@ -20,7 +20,6 @@ from pathlib import Path
 import numpy as np
 from matplotlib.ticker import NullFormatter
 
-from lgvi_jax._io import atomic_write_text
 from lgvi_jax.diagnostics import (
     drift_ratio,
     environment,
@@ -32,7 +31,7 @@ from lgvi_jax.integrators import EUCLIDEAN_METHODS
 from lgvi_jax.models import HarmonicOscillator
 from lgvi_jax.plotting import envelope, figure, positive, save, style_for
 from lgvi_jax.simulate import final_state, simulate, simulate_timed
-from lgvi_jax.studies import mark_complete, script_main
+from lgvi_jax.studies import mark_complete, script_main, write_summary_lines
 
 PAPER_METHODS = ("rk4", "gl4", "galerkin4")
 ALL_METHODS = ("rk4", "gl4", "galerkin4", "verlet", "gl6", "galerkin6")
@@ -295,9 +294,7 @@ def write_summary(results: dict, out: Path) -> str:
         f"fixed O(h⁴) amplitude while RK4's grows like t·h⁵/72, so for short runs RK4 is "
         f"closer in energy. {cross_txt}.",
     ]
-    text = "\n".join(lines) + "\n"
-    atomic_write_text(out / "summary.md", text)
-    return text
+    return write_summary_lines(out, lines)
 
 
 def run(out_dir: Path | str, *, quick: bool = False, log: Callable = print) -> dict:

@@ -54,11 +54,16 @@ import jax.numpy as jnp
 import numpy as np
 
 from lgvi_jax import rollout
-from lgvi_jax._io import atomic_write_text
 from lgvi_jax.diagnostics import environment
 from lgvi_jax.models import CarPendulum, HarmonicOscillator, PhaseState
 from lgvi_jax.plotting import figure, method_style, positive, save
-from lgvi_jax.studies import EUCLIDEAN_METHOD_NAMES, RIGID_METHOD_NAMES, mark_complete, script_main
+from lgvi_jax.studies import (
+    EUCLIDEAN_METHOD_NAMES,
+    RIGID_METHOD_NAMES,
+    mark_complete,
+    script_main,
+    write_summary_lines,
+)
 from lgvi_jax.systems import resolve_methods
 from lgvi_jax.trajectory import RESULTS
 
@@ -392,9 +397,7 @@ def write_summary(results: dict, out: Path) -> str:
                          f"{', '.join(study['skipped_methods'])}.")
     lines += ["", "**Reading the numbers:**", ""]
     lines += verdicts(results)
-    text = "\n".join(lines) + "\n"
-    atomic_write_text(out / "summary.md", text)
-    return text
+    return write_summary_lines(out, lines)
 
 
 def verdicts(results: dict) -> list[str]:

@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 
 from lgvi_jax import diagnostics
-from lgvi_jax._io import atomic_write_text
 from lgvi_jax.plotting import figure, method_style, positive, save
+from lgvi_jax.studies import write_summary_lines
 
 from . import runners
 from .metrics import _label
@@ -234,9 +234,7 @@ def write_summary(results: dict, out: Path) -> str:
     lines += ["", "## Every method in every regime (value, rank)", ""]
     lines += method_table(results)
     lines += ["", "Charts: " + ", ".join(f"`{f}`" for f in results["files"]), ""]
-    text = "\n".join(lines) + "\n"
-    atomic_write_text(out / "summary.md", text)
-    return text
+    return write_summary_lines(out, lines)
 
 
 # ---------------------------------------------------------------------- results.json
