@@ -386,7 +386,7 @@ def _hand_reference_at(model, R0, omega0, q0, v0, times):
 def _vector_field_at(model, state, times):
     """DOP853 at 1e-13 on the model's continuous equations, step by step between the
     requested times (every returned state an accepted step, as HandReference.at)."""
-    from scipy.integrate import solve_ivp
+    from .systems.car_pendulum import dop853_at
 
     dof = model.dof
     y0 = np.concatenate([np.ravel(np.asarray(state.R)), np.asarray(state.mu),
@@ -398,16 +398,7 @@ def _vector_field_at(model, state, times):
         d = model.vector_field(s)
         return jnp.concatenate([d.R.ravel(), d.mu, d.q, d.p])
 
-    out = np.empty((times.size, y0.size))
-    y, t = y0, 0.0
-    for i, t_next in enumerate(times):
-        if t_next > t:
-            sol = solve_ivp(lambda _t, x: np.asarray(rhs(x)), (t, t_next), y,
-                            method="DOP853", rtol=1e-13, atol=1e-13)
-            if not sol.success:
-                raise RuntimeError(f"observe: DOP853 failed: {sol.message}")
-            y, t = sol.y[:, -1], t_next
-        out[i] = y
+    out = dop853_at(lambda _t, x: np.asarray(rhs(x)), y0, times, who="observe")
     return out[:, :9].reshape(-1, 3, 3), out[:, 12:12 + dof].copy()
 
 

@@ -218,14 +218,9 @@ class Composition(AbstractIntegrator):
 
 @with_chord_matrix.register(Composition)
 def _(method: Composition, chord_matrix: ChordMatrix | str) -> AbstractIntegrator:
-    base = with_chord_matrix(method.base, chord_matrix)  # checks chord_matrix for any base
-    if isinstance(method.base, AbstractLieVI):
-        return dataclasses.replace(method, base=base)
-    return method
+    return dataclasses.replace(method, base=with_chord_matrix(method.base, chord_matrix))
 
 
 @with_scalar_newton.register(Composition)
 def _(method: Composition) -> AbstractIntegrator:
-    if isinstance(method.base, AbstractLieVI):
-        return dataclasses.replace(method, base=with_scalar_newton(method.base))
-    return method
+    return dataclasses.replace(method, base=with_scalar_newton(method.base))

@@ -18,7 +18,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import so3
-from .._checks import as_float_array, check_nonnegative, check_positive, is_concrete
+from .._checks import (
+    as_float_array,
+    check_finite,
+    check_nonnegative,
+    check_positive,
+    is_concrete,
+)
 from ..linalg import spd_solve
 from .base import reject_removed_keywords
 from .rigid import AbstractRigidBodyModel, RigidState, check_inertia
@@ -64,11 +70,6 @@ def _check_shape(name: str, value, shape: tuple[int, ...], owner: str) -> None:
         raise ValueError(f"{owner}: {name} must have shape {shape}, got {jnp.shape(value)}")
 
 
-def _check_finite(name: str, value, owner: str) -> None:
-    if is_concrete(value) and not np.all(np.isfinite(np.asarray(value))):
-        raise ValueError(f"{owner}: {name} must be finite, got {np.asarray(value).tolist()}")
-
-
 def _initial_state(model: AbstractRigidBodyModel, owner: str, R0, omega0, q0=(), v0=()
                    ) -> RigidState:
     """``model.state_from_velocities(R0, omega0, q0, v0)`` after validating the arguments
@@ -80,7 +81,7 @@ def _initial_state(model: AbstractRigidBodyModel, owner: str, R0, omega0, q0=(),
     for name, (value, shape) in values.items():
         arr = as_float_array(name, value, owner)
         _check_shape(name, arr, shape, owner)
-        _check_finite(name, arr, owner)
+        check_finite(name, arr, owner)
         arrays[name] = arr
     return model.state_from_velocities(R0, arrays["omega0"], arrays["q0"], arrays["v0"])
 
@@ -168,7 +169,7 @@ class HeavyTop(AbstractRigidBodyModel):
         check_positive("m", self.m, owner)
         check_nonnegative("g", self.g, owner)
         _check_shape("rho_c", self.rho_c, (3,), owner)
-        _check_finite("rho_c", self.rho_c, owner)
+        check_finite("rho_c", self.rho_c, owner)
 
     def kinetic(self, R, Omega, q, v):
         return rotational_kinetic(self.J, Omega)
@@ -238,7 +239,7 @@ class CarPendulum(AbstractRigidBodyModel):
         check_nonnegative("g", self.g, owner)
         check_inertia("J", self.J, owner)
         _check_shape("rho_c", self.rho_c, (3,), owner)
-        _check_finite("rho_c", self.rho_c, owner)
+        check_finite("rho_c", self.rho_c, owner)
 
     def kinetic(self, R, Omega, q, v):
         coupling = self.m * jnp.dot(v, (R @ (Omega @ self.rho_c))[:2])

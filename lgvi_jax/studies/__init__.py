@@ -17,6 +17,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from .._io import atomic_write_text
+
 #: The methods the work-precision and stability studies run on SO(3) x R^n (the
 #: car-pendulum) and on R^n (the oscillator), by system name; names that do not resolve are
 #: skipped and listed in the studies' summaries.
@@ -53,8 +55,6 @@ def script_main(run: Callable, description: str | None, argv: list[str] | None =
 
 def write_summary_lines(out: Path, lines: list[str]) -> str:
     """Write ``lines`` as the stage's ``out/summary.md`` (one per line); return the text."""
-    from .._io import atomic_write_text
-
     text = "\n".join(lines) + "\n"
     atomic_write_text(Path(out) / "summary.md", text)
     return text
@@ -63,6 +63,4 @@ def write_summary_lines(out: Path, lines: list[str]) -> str:
 def mark_complete(out: Path, results: Any, indent: int = 2) -> None:
     """Write ``out/results.json`` — last, after every figure and ``summary.md``: its presence
     marks the stage as complete (:mod:`lgvi_jax.reproduce` skips a completed stage)."""
-    from .._io import atomic_write_text
-
     atomic_write_text(Path(out) / "results.json", json.dumps(results, indent=indent))

@@ -58,7 +58,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["HandReference", "ReferenceProblem", "moving_problem", "paper_problem"]
+__all__ = ["HandReference", "ReferenceProblem", "dop853_at", "moving_problem", "paper_problem"]
 
 E3 = np.array([0.0, 0.0, 1.0])
 P = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
@@ -66,6 +66,26 @@ P = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
 
 def hat(w):
     return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+
+
+def dop853_at(rhs, y0, times, *, rtol: float = 1e-13, atol: float = 1e-13,
+              who: str = "dop853_at") -> np.ndarray:
+    """States of ``y' = rhs(t, y)``, ``y(0) = y0``, at the increasing ``times`` (the first
+    may be 0), shape ``(len(times), len(y0))``: SciPy's DOP853 integrated piecewise from one
+    time to the next, so every returned state is an accepted step (no dense-output
+    interpolation). ``RuntimeError`` naming ``who`` if a piece fails."""
+    from scipy.integrate import solve_ivp
+
+    out = np.empty((len(times), np.size(y0)))
+    y, t = np.array(y0, dtype=np.float64), 0.0
+    for i, t_next in enumerate(times):
+        if t_next > t:
+            sol = solve_ivp(rhs, (t, t_next), y, method="DOP853", rtol=rtol, atol=atol)
+            if not sol.success:
+                raise RuntimeError(f"{who}: DOP853 failed: {sol.message}")
+            y, t = sol.y[:, -1], t_next
+        out[i] = y
+    return out
 
 
 class HandReference:
@@ -163,23 +183,12 @@ class HandReference:
         """States at the given increasing times (the first may be 0), shape
         ``(len(times), 16)``. Integrated piecewise from one time to the next, so every
         returned state is an accepted step of DOP853 (no interpolation)."""
-        from scipy.integrate import solve_ivp
-
         times = np.asarray(times, dtype=np.float64)
         if times.ndim != 1 or times.size == 0 or times[0] < 0 or np.any(np.diff(times) <= 0):
             raise ValueError("HandReference.at: times must be a non-empty, increasing 1-D "
                              f"array starting at t >= 0, got {times!r}")
-        out = np.empty((times.size, self.y0.size))
-        y, t = self.y0.copy(), 0.0
-        for i, t_next in enumerate(times):
-            if t_next > t:
-                sol = solve_ivp(self.rhs, (t, t_next), y, method="DOP853", rtol=rtol,
-                                atol=atol)
-                if not sol.success:
-                    raise RuntimeError(f"HandReference.at: DOP853 failed: {sol.message}")
-                y, t = sol.y[:, -1], t_next
-            out[i] = y
-        return out
+        return dop853_at(self.rhs, self.y0, times, rtol=rtol, atol=atol,
+                         who="HandReference.at")
 
     def centre(self, y) -> np.ndarray:
         """Inertial position of the pendulum's mass centre, ``(x, y, 0) + R ρ_c``."""
