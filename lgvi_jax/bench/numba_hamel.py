@@ -139,6 +139,23 @@ def _coeffs(t2, method):
     return c1, c2, d
 
 
+@njit(cache=False, error_model="numpy", inline="always")
+def _cart_coupling(px, py, k, im, R0, g0, g1, g2, w0, w1, w2, c1, c2, t2):
+    """The cart's velocity ``u = (p − k P R0 g) / (m + M)`` (``im = 1/(m + M)``; ``g`` the
+    method's rotated pivot term), ``a = R0ᵀ Pᵀ u`` and ``b = Fᵀ a = a − c1 w × a + c2 (w (w·a)
+    − θ² a)``: shared by the Hamel and LGVI kernels (inlined by Numba into each)."""
+    u0 = (px - k * (R0[0, 0] * g0 + R0[0, 1] * g1 + R0[0, 2] * g2)) * im
+    u1 = (py - k * (R0[1, 0] * g0 + R0[1, 1] * g1 + R0[1, 2] * g2)) * im
+    a0 = R0[0, 0] * u0 + R0[1, 0] * u1
+    a1 = R0[0, 1] * u0 + R0[1, 1] * u1
+    a2 = R0[0, 2] * u0 + R0[1, 2] * u1
+    wa = w0 * a0 + w1 * a1 + w2 * a2
+    b0 = a0 - c1 * (w1 * a2 - w2 * a1) + c2 * (w0 * wa - t2 * a0)
+    b1 = a1 - c1 * (w2 * a0 - w0 * a2) + c2 * (w1 * wa - t2 * a1)
+    b2 = a2 - c1 * (w0 * a1 - w1 * a0) + c2 * (w2 * wa - t2 * a2)
+    return u0, u1, a0, a1, a2, b0, b1, b2
+
+
 @njit(cache=False, error_model="numpy")
 def _eval(w0, w1, w2, R0, K0, K1, K2, px, py, h, prm, method):
     """For the increment ``w``: the residual ``μ_k(w) − μ_0`` (``K = μ_0 + (h/2)mg ρ×b_k``),
@@ -159,19 +176,9 @@ def _eval(w0, w1, w2, R0, K0, K1, K2, px, py, h, prm, method):
     g0 = s * e0 + c1 * f0
     g1 = s * e1 + c1 * f1
     g2 = s * e2 + c1 * f2
-    # u = (p − (m/2h) P R0 (I + F) e) / (m + M)
-    k = 0.5 * m / h
-    im = 1.0 / (m + M)
-    u0 = (px - k * (R0[0, 0] * g0 + R0[0, 1] * g1 + R0[0, 2] * g2)) * im
-    u1 = (py - k * (R0[1, 0] * g0 + R0[1, 1] * g1 + R0[1, 2] * g2)) * im
-    # a_k = R0ᵀ Pᵀ u;  a_{k+1} = Fᵀ a_k = a_k − c1 w × a_k + c2 (w (w·a_k) − θ² a_k)
-    a0 = R0[0, 0] * u0 + R0[1, 0] * u1
-    a1 = R0[0, 1] * u0 + R0[1, 1] * u1
-    a2 = R0[0, 2] * u0 + R0[1, 2] * u1
-    wa = w0 * a0 + w1 * a1 + w2 * a2
-    b0 = a0 - c1 * (w1 * a2 - w2 * a1) + c2 * (w0 * wa - t2 * a0)
-    b1 = a1 - c1 * (w2 * a0 - w0 * a2) + c2 * (w1 * wa - t2 * a1)
-    b2 = a2 - c1 * (w0 * a1 - w1 * a0) + c2 * (w2 * wa - t2 * a2)
+    # u = (p − (m/2h) P R0 (I + F) e) / (m + M), a_k = R0ᵀ Pᵀ u, a_{k+1} = Fᵀ a_k
+    u0, u1, a0, a1, a2, b0, b1, b2 = _cart_coupling(px, py, 0.5 * m / h, 1.0 / (m + M), R0,
+                                                    g0, g1, g2, w0, w1, w2, c1, c2, t2)
     # g_w = J w / h + (m/2) ρ × (a_k + a_{k+1})
     ih = 1.0 / h
     hm = 0.5 * m

@@ -97,19 +97,9 @@ def _eval(w0, w1, w2, R0, K0, K1, K2, px, py, h, prm, method):
     g0 = c1 * e0 + c2 * (w1 * e2 - w2 * e1)
     g1 = c1 * e1 + c2 * (w2 * e0 - w0 * e2)
     g2 = c1 * e2 + c2 * (w0 * e1 - w1 * e0)
-    # u = (p − (m/h) P R0 (F − I) ρ) / (m + M)
-    k = m / h
-    im = 1.0 / (m + M)
-    u0 = (px - k * (R0[0, 0] * g0 + R0[0, 1] * g1 + R0[0, 2] * g2)) * im
-    u1 = (py - k * (R0[1, 0] * g0 + R0[1, 1] * g1 + R0[1, 2] * g2)) * im
-    # a = R0ᵀ Pᵀ u;  Fᵀ a = a − c1 w × a + c2 (w (w·a) − θ² a)
-    a0 = R0[0, 0] * u0 + R0[1, 0] * u1
-    a1 = R0[0, 1] * u0 + R0[1, 1] * u1
-    a2 = R0[0, 2] * u0 + R0[1, 2] * u1
-    wa = w0 * a0 + w1 * a1 + w2 * a2
-    b0 = a0 - c1 * (w1 * a2 - w2 * a1) + c2 * (w0 * wa - t2 * a0)
-    b1 = a1 - c1 * (w2 * a0 - w0 * a2) + c2 * (w1 * wa - t2 * a1)
-    b2 = a2 - c1 * (w0 * a1 - w1 * a0) + c2 * (w2 * wa - t2 * a2)
+    # u = (p − (m/h) P R0 (F − I) ρ) / (m + M), a = R0ᵀ Pᵀ u, Fᵀ a
+    u0, u1, a0, a1, a2, b0, b1, b2 = _hamel._cart_coupling(
+        px, py, m / h, 1.0 / (m + M), R0, g0, g1, g2, w0, w1, w2, c1, c2, t2)
     # v = J w / h,  x = w × v:  (F J_d − J_d Fᵀ)^∨ / h = c1 v + c2 x,  (J_d F − Fᵀ J_d)^∨ / h
     # = c1 v − c2 x
     ih = 1.0 / h
