@@ -202,13 +202,14 @@ class Composition(AbstractIntegrator):
         def warm(carry, xs):
             s, prev_sol, acc = carry
             g, g_prev = xs
-            v = model.velocities(s.R, s.mu, s.q, s.p)
+            v = base.guess_from_velocities(model.velocities(s.R, s.mu, s.q, s.p))
             ratio = jnp.where(g_prev == 0.0, 0.0, g / jnp.where(g_prev == 0.0, 1.0, g_prev))
             guess = jax.tree.map(lambda a, b: a + ratio * (a - b), v, prev_sol)
             s, info, sol = base.solve_step(model, s, g * dt, guess)
             return (s, sol, _merge_info(acc, info)), None
 
-        zero_sol = (jnp.zeros_like(state.mu), jnp.zeros_like(state.p))
+        zero_sol = jax.tree.map(jnp.zeros_like, base.guess_from_velocities(
+            (jnp.zeros_like(state.mu), jnp.zeros_like(state.p))))
         (state, _, acc), _ = jax.lax.scan(warm, (state, zero_sol, acc0), (gam, prev_gam))
         return state, StepInfo(newton_steps=acc[0], result=acc[1], residual=acc[2])
 

@@ -225,6 +225,13 @@ class AbstractLieVI(AbstractIntegrator):
         ``w``."""
         raise NotImplementedError
 
+    def guess_from_velocities(self, velocities):
+        """The Newton unknowns of a step at which the motion keeps the velocities
+        ``(ω, v)``: the initial guess from the current velocities. The unknowns are the
+        velocities ``(ξ, u)`` themselves (the identity); methods with more unknowns per step
+        (:class:`~lgvi_jax.integrators.lie_galerkin.LieGalerkinVI`) extend them."""
+        return velocities
+
     def tau(self, w: jax.Array) -> jax.Array:
         """The map ``w -> F = R_kᵀ R_{k+1}``."""
         return jnp.eye(3, dtype=w.dtype) + self.tau_minus_identity(w)
@@ -286,7 +293,7 @@ class AbstractLieVI(AbstractIntegrator):
     def init_solver_state(self, model, state: RigidState, dt):
         """The last :data:`PREDICTOR_POINTS` solutions ``(ξ, u)`` of a rollout, newest first
         (at its start all the current velocities), and how many of them are solutions."""
-        v = self._velocities(model, state)
+        v = self.guess_from_velocities(self._velocities(model, state))
         return (v,) * PREDICTOR_POINTS, jnp.zeros((), jnp.int32)
 
     def step_with(self, model, state: RigidState, dt, solver_state):
@@ -304,7 +311,8 @@ class AbstractLieVI(AbstractIntegrator):
 
         def velocities(params, R, mu, q, p):
             m = eqx.combine(params, static)
-            return self._velocities(m, RigidState(R=R, mu=mu, q=q, p=p))
+            return self.guess_from_velocities(
+                self._velocities(m, RigidState(R=R, mu=mu, q=q, p=p)))
 
         guess = where_any(unresolved(history, count), velocities, guess,
                           (params, state.R, state.mu, state.q, state.p))
@@ -334,7 +342,7 @@ class AbstractLieVI(AbstractIntegrator):
         fast = self.newton.scalar and self.chord_matrix == ChordMatrix.EXACT
         if fast:
             if guess is None:
-                guess = self._velocities(model, state)
+                guess = self.guess_from_velocities(self._velocities(model, state))
             solver = self.newton
             if solver.scalar_jacobian == JacobianMode.AUTO:
                 solver = dataclasses.replace(solver, scalar_jacobian=self.jacobian_mode)
@@ -348,7 +356,7 @@ class AbstractLieVI(AbstractIntegrator):
         mass_inv = spd_inverse(mass)
         if guess is None:
             x = mass_inv @ (jnp.concatenate([mu0, p0]) - at_rest)
-            guess = (x[:3], x[3:])
+            guess = self.guess_from_velocities((x[:3], x[3:]))
         if self.chord_matrix == ChordMatrix.MASS:
             jac0 = ChordInverse(mass_inv)
             solver = dataclasses.replace(solver, chord_steps=max(solver.chord_steps, 20),
