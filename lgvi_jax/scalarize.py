@@ -121,7 +121,7 @@ _NUMPY_BINARY = {
 _ELEMENTWISE = set(_NUMPY_UNARY) | set(_NUMPY_BINARY) | {
     "integer_pow", "convert_element_type", "select_n", "clamp", "copy", "copy_p", "rsqrt",
     "cbrt", "logistic", "erf", "erfc", "erf_inv", "exp2", "asinh", "acosh", "atanh",
-    "round", "nextafter", "reduce_precision", "xor", "lgamma", "digamma",
+    "round", "nextafter", "reduce_precision", "xor", "lgamma", "digamma", "stop_gradient",
 }
 
 
