@@ -8,6 +8,7 @@ from .composition import Composition
 from .galerkin import GalerkinVI
 from .gauss_legendre import GaussLegendre
 from .lie import LGVI, AbstractLieVI, HamelVI
+from .lie_galerkin import LieGalerkinVI
 from .lie_rk import RKMK4
 from .rk4 import RK4
 from .schemes import (
@@ -34,7 +35,8 @@ EUCLIDEAN_METHODS: dict[str, Callable[[], AbstractIntegrator]] = {
 
 #: Methods for models on SO(3) x R^n. The first five are the paper's and the issue's;
 #: ``rk4`` and ``gl4`` integrate the continuous equations with R embedded as 9 numbers;
-#: ``rkmk4`` is the explicit Lie-group Runge–Kutta–Munthe-Kaas method (R on SO(3)).
+#: ``rkmk4`` is the explicit Lie-group Runge–Kutta–Munthe-Kaas method (R on SO(3));
+#: ``galerkin4/6/8`` the Lie-group Galerkin variational integrators of order 4, 6, 8.
 #: Every symmetric method also exists composed to order 4, 6 or 8: ``resolve_method``
 #: accepts ``METHOD@ORDER`` and ``METHOD@SCHEME`` (``lgvi@6``, ``lgvi@kahan-li8``).
 RIGID_METHODS: dict[str, Callable[[], AbstractIntegrator]] = {
@@ -46,6 +48,9 @@ RIGID_METHODS: dict[str, Callable[[], AbstractIntegrator]] = {
     "hamel-cayley-exact": lambda: HamelVI(map=HamelMap.CAYLEY, variation=Variation.EXACT),
     "gl4": lambda: GaussLegendre(stages=2),
     "rkmk4": RKMK4,
+    "galerkin4": lambda: LieGalerkinVI(degree=2),
+    "galerkin6": lambda: LieGalerkinVI(degree=3),
+    "galerkin8": lambda: LieGalerkinVI(degree=4),
 }
 
 __all__ = [
@@ -65,6 +70,7 @@ __all__ = [
     "GaussLegendre",
     "HamelMap",
     "HamelVI",
+    "LieGalerkinVI",
     "MethodTable",
     "StepInfo",
     "StormerVerlet",
