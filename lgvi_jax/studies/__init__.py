@@ -24,7 +24,7 @@ from .._io import atomic_write_text
 #: skipped and listed in the studies' summaries.
 RIGID_METHOD_NAMES: tuple[str, ...] = (
     "lgvi", "hamel", "hamel-cayley", "hamel-exact", "hamel-cayley-exact", "rk4", "gl4",
-    "rkmk4", "lgvi@4", "lgvi@6", "lgvi@8",
+    "rkmk4", "lgvi@4", "lgvi@6", "lgvi@8", "galerkin4", "galerkin6",
 )
 EUCLIDEAN_METHOD_NAMES: tuple[str, ...] = (
     "rk4", "gl4", "gl6", "verlet", "galerkin4", "galerkin6", "verlet@4", "verlet@6",

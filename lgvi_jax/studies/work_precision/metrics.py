@@ -114,8 +114,10 @@ def regimes(results: dict, cfg: dict) -> list[dict]:
     out = []
     for key, res in results["systems"].items():
         runs = res["runs"]
-        for T, target in ((10.0, tg["short_tight"]), (10.0, tg["short_moderate"]),
-                          (50.0, tg["t50"])):
+        for T, target in ((10.0, tg["short_tight"]), (10.0, tg.get("short_mid")),
+                          (10.0, tg["short_moderate"]), (50.0, tg["t50"])):
+            if target is None:
+                continue
             if T not in cfg["horizons"]:
                 continue
             err = f"position_error_t{T:g}"
@@ -135,9 +137,20 @@ def regimes(results: dict, cfg: dict) -> list[dict]:
         inv = []
         for r in runs:
             keys = [k for k in r if k.endswith("_drift_max") or k == "orthogonality_error_max"]
-            if r["failed"] or not keys:
+            if r["failed"] or not keys or any(r[k] is None for k in keys):
                 continue
             inv.append({**r, "invariant_error": max(r[k] for k in keys)})
+        bound = tg.get("long_invariants")
+        if inv and bound is not None:
+            best = _fastest(inv, lambda r, bound=bound, target=target:
+                            r["invariant_error"] <= bound
+                            and (r["energy_error_max"] or np.inf) <= target)
+            out.append(_regime(
+                f"{key}: {T:g} s, all invariants (energy ≤ {target:g}, momentum maps and "
+                f"SO(3) ≤ {bound:g})",
+                f"fastest run of [0, {T:g}] s whose max relative energy error ≤ {target:g} "
+                f"and whose worst of max |Δp|, max |ΔL_z|, max ‖RᵀR − I‖_F ≤ {bound:g}",
+                best, "wall_s"))
         if inv:
             best = {}
             for r in inv:

@@ -34,8 +34,9 @@ OSC_STEPS = {2: (0.1, 0.05, 0.02, 0.01, 0.005, 0.002, 0.001),
 LONG_STEPS = {"rigid": {2: (0.02, 0.01), 4: (0.05, 0.025), 6: (0.1, 0.05)},
               "oscillator": {2: (0.1, 0.05), 4: (0.1,), 6: (0.1,)}}
 #: Per-method exceptions: gl4 on the embedded car-pendulum ODE costs ~10x an explicit step,
-#: lgvi@8 ~15 lgvi steps per step.
-LONG_STEPS_OVERRIDE = {"rigid": {"gl4": (0.1,), "lgvi@8": (0.1,)}, "oscillator": {}}
+#: lgvi@8 ~15 lgvi steps per step, a Lie-group Galerkin step ~100 (solved on small arrays).
+LONG_STEPS_OVERRIDE = {"rigid": {"gl4": (0.1,), "lgvi@8": (0.1,), "galerkin4": (0.05,),
+                                 "galerkin6": (0.1,)}, "oscillator": {}}
 #: diffrax and SciPy settings: rtol = atol.
 DIFFRAX_TOLS = {"tsit5": (1e-4, 1e-6, 1e-8, 1e-10, 1e-12),
                 "dopri8": (1e-5, 1e-7, 1e-9, 1e-11, 1e-13)}
@@ -45,7 +46,8 @@ DIFFRAX_LONG_TOLS = {"tsit5": (1e-6, 1e-9), "dopri8": (1e-7, 1e-10)}
 SCIPY_TOLS = {"DOP853": (1e-5, 1e-7, 1e-9, 1e-11), "RK45": (1e-4, 1e-6, 1e-8)}
 SCIPY_LONG_TOLS = {"DOP853": (1e-9,)}  # oscillator only (car-pendulum: see summary)
 #: Targets of the regimes.
-TARGETS = {"short_tight": 1e-8, "short_moderate": 1e-4, "t50": 1e-5, "long_energy": 1e-6}
+TARGETS = {"short_tight": 1e-8, "short_mid": 1e-5, "short_moderate": 1e-4, "t50": 1e-5,
+           "long_energy": 1e-6, "long_invariants": 1e-9}
 
 
 def config(quick: bool) -> dict:
