@@ -87,8 +87,10 @@ class Newton(eqx.Module):
         chord: if True, the Jacobian is computed and factorised once, at the initial guess
             (the chord or simplified Newton method): cheaper iterations, linear convergence.
         chord_steps: if > 0 (and ``chord`` is False), start with up to ``chord_steps``
-            chord iterations and fall back to full Newton from the initial guess for a solve
-            that has not converged by then or whose updates stop halving. As robust as
+            chord iterations; a phase that has not converged by then or whose updates stop
+            halving starts again from its iterate with a fresh Jacobian if it reduced the
+            residual (at most :data:`CHORD_REFRESHES` times), and otherwise the solve falls
+            back to full Newton from the initial guess. As robust as
             Newton, and about twice as fast for the Lie-group VIs at moderate steps
             (``lgvi_jax/bench/throughput.py``). One loop serves both phases, so the
             Jacobian is traced once (``_iterate_chord_refresh``).
@@ -216,6 +218,10 @@ _CHORD_TIGHTEN = 1e-2
 #: car-pendulum's vertical angular momentum as well conserved as Newton's, in fewer
 #: iterations than the fixed chord (1.0: twice Newton's drift; docs/benchmarks.md).
 _BROYDEN_TIGHTEN = 0.1
+#: How often a stalled chord phase that made progress starts again from its iterate with
+#: a fresh Jacobian (``Newton(chord_steps=...)``) before the solve falls back to full
+#: Newton from the initial guess.
+CHORD_REFRESHES = 2
 
 
 def _inverse(J, solve):
@@ -398,10 +404,13 @@ def _iterate_chord_refresh(f, y0, solver: Newton):
     """Chord iterations first, full Newton as the fallback (``chord_steps > 0``).
 
     The chord phase takes a Newton step from the initial guess and then reuses that
-    Jacobian for up to ``chord_steps`` iterations in all; a solve that has not converged
-    by then, or whose chord updates stop shrinking by at least half, restarts from the
-    initial guess with full Newton (at most ``max_steps`` more iterations; iterations keep
-    counting). Both phases run in one loop whose body evaluates the Jacobian once, followed
+    Jacobian for up to ``chord_steps`` iterations; when its updates stop shrinking by at
+    least half or it runs out, a phase that has reduced the residual below the initial
+    guess's starts again from its iterate with the Jacobian there (at most
+    :data:`CHORD_REFRESHES` times: large steps, where the guess is poor and the contraction
+    slow), and any other restarts from the initial guess with full Newton (at most
+    ``max_steps`` more iterations; iterations keep counting). All phases run in one loop
+    whose body evaluates the Jacobian once, followed
     by an inner loop of chord iterations that the Newton phase skips: the Jacobian and the
     residual are each traced once, which keeps the compiled program small (compile time),
     and under ``vmap`` a batch whose members all converge in the chord phase pays for one
@@ -412,7 +421,7 @@ def _iterate_chord_refresh(f, y0, solver: Newton):
     chord_cap = min(solver.chord_steps, solver.max_steps)
     inf = jnp.asarray(jnp.inf, dtype)
 
-    def update(y, J_inv, F, k, prev, newton, cap):
+    def update(y, J_inv, F, k, prev, newton, cap, k_phase):
         delta = -(J_inv @ F)
         res = jnp.max(jnp.abs(F), initial=0.0)
         finite = jnp.all(jnp.isfinite(delta)) & jnp.isfinite(res)
@@ -420,9 +429,10 @@ def _iterate_chord_refresh(f, y0, solver: Newton):
         scale = solver.atol + solver.rtol * jnp.abs(y_new)
         size = jnp.max(jnp.abs(delta) / scale, initial=0.0)
         k = k + 1
-        # The chord phase gives up (-> Newton) when it stops contracting or runs out;
-        # the Newton phase fails at its cap.
-        stalled = jnp.where(newton, False, (k >= chord_cap) | (size > 0.5 * prev))
+        # A chord phase gives up (-> refresh or Newton) when it stops contracting or runs
+        # out; the Newton phase fails at its cap.
+        stalled = jnp.where(newton, False,
+                            (k - k_phase >= chord_cap) | (size > 0.5 * prev))
         result = jnp.where(
             ~finite,
             RESULTS.nonfinite,
@@ -434,30 +444,35 @@ def _iterate_chord_refresh(f, y0, solver: Newton):
         return y_new, k, result, res, size, stalled
 
     def outer_body(carry):
-        y, k, _, _, newton, cap = carry
+        y, k, _, _, newton, cap, refreshes, res0 = carry
+        k_phase = k
         J, F = _residual_and_jacobian(f, y)
         J_inv = _inverse(jnp.asarray(J, dtype), solve)  # once, for the chord iterations
-        y, k, result, res, size, stalled = update(y, J_inv, F, k, inf, newton, cap)
+        y, k, result, res, size, stalled = update(y, J_inv, F, k, inf, newton, cap, k_phase)
+        res0 = jnp.where(k == 1, res, res0)  # the residual at the initial guess
 
         def inner_cond(c):
             return (c[2] < 0) & ~c[5]
 
         def inner_body(c):
             y, k, _, _, prev, _ = c
-            return update(y, J_inv, f(y), k, prev, newton, cap)
+            return update(y, J_inv, f(y), k, prev, newton, cap, k_phase)
 
         y, k, result, res, _, stalled = jax.lax.while_loop(
             inner_cond, inner_body, (y, k, result, res, size, stalled | newton))
-        # A chord phase that did not converge: restart from the guess with full Newton.
-        fallback = ~newton & (result < 0)
+        # A chord phase that did not converge: from its iterate with a fresh Jacobian if it
+        # made progress, else from the guess with full Newton.
+        failed = ~newton & (result < 0)
+        refresh = failed & (refreshes < CHORD_REFRESHES) & (res < res0)
+        fallback = failed & ~refresh
         y = jnp.where(fallback, y0, y)
         cap = jnp.where(fallback, k + solver.max_steps, cap)
-        return y, k, result, res, newton | fallback, cap
+        return y, k, result, res, newton | fallback, cap, refreshes + refresh, res0
 
     zero = jnp.asarray(0, jnp.int32)
     init = (y0, zero, jnp.asarray(-1, jnp.int32), inf, jnp.asarray(False),
-            jnp.asarray(solver.max_steps, jnp.int32))
-    y, k, result, res, _, _ = jax.lax.while_loop(lambda c: c[2] < 0, outer_body, init)
+            jnp.asarray(solver.max_steps, jnp.int32), zero, inf)
+    y, k, result, res, *_ = jax.lax.while_loop(lambda c: c[2] < 0, outer_body, init)
     return y, result, k, res
 
 
@@ -763,7 +778,7 @@ def _iterate_scalar(programs, y0, args, solver: Newton, lanes: int | None = None
             out[i] = v
         return out
 
-    def update(y, J_inv, k, prev, newton, cap):
+    def update(y, J_inv, k, prev, newton, cap, k_phase):
         F = list(res_fn(as_obj(y), args_s, batched=True))
         delta = [sc.neg(d) for d in _scalar_matvec(J_inv, F)]
         res = _scalar_max([sc.absolute(f) for f in F], zero)
@@ -774,9 +789,9 @@ def _iterate_scalar(programs, y0, args, solver: Newton, lanes: int | None = None
         size = _scalar_max([sc.div(sc.absolute(d), sc.add(atol, sc.mul(rtol, sc.absolute(a))))
                             for d, a in zip(delta, y_new, strict=True)], zero)
         k = k + 1
-        # The chord phase gives up (-> Newton) when it stops contracting or runs out; the
-        # Newton phase takes one update per Jacobian and fails at its cap.
-        stop = newton | (k >= chord_cap) | (size > 0.5 * prev)
+        # A chord phase gives up (-> refresh or Newton) when it stops contracting or runs
+        # out; the Newton phase takes one update per Jacobian and fails at its cap.
+        stop = newton | (k - k_phase >= chord_cap) | (size > 0.5 * prev)
         result = jnp.where(
             ~finite, RESULTS.nonfinite,
             jnp.where(size <= 1.0, RESULTS.successful,
@@ -786,30 +801,36 @@ def _iterate_scalar(programs, y0, args, solver: Newton, lanes: int | None = None
         return (tuple(lane(v) for v in y_new), k, result, lane(res), lane(size), stop)
 
     def outer_body(carry):
-        y, k, _, _, newton, cap = carry
+        y, k, _, _, newton, cap, refreshes, res0 = carry
+        k_phase = k
         J_inv = _scalar_block_inverse(_rows(jac_fn(as_obj(y), args_s, batched=True)))
 
         def inner_body(c):
-            y, k, _, _, prev, _ = c
-            return update(list(y), J_inv, k, prev, newton, cap)
+            y, k, _, _, prev, _, r0 = c
+            out = update(list(y), J_inv, k, prev, newton, cap, k_phase)
+            return (*out, jnp.where(out[1] == 1, out[3], r0))  # the residual at the guess
 
-        y, k, result, res, _, _ = _while_lanes(
+        y, k, result, res, _, _, res0 = _while_lanes(
             lambda c: (c[2] < 0) & ~c[5], inner_body,
             (y, k, full(-1, jnp.int32), full(jnp.inf, dtype), full(jnp.inf, dtype),
-             full(False, jnp.bool_)), lanes)
-        # A chord phase that did not converge: restart from the guess with full Newton.
-        fallback = ~newton & (result < 0)
+             full(False, jnp.bool_), res0), lanes)
+        # A chord phase that did not converge: from its iterate with a fresh Jacobian if it
+        # made progress (_iterate_chord_refresh), else from the guess with full Newton.
+        failed = ~newton & (result < 0)
+        refresh = failed & (refreshes < CHORD_REFRESHES) & (res < res0)
+        fallback = failed & ~refresh
         y = tuple(jnp.where(fallback, a, b) for a, b in zip(y0_s, y, strict=True))
         cap = jnp.where(fallback, k + solver.max_steps, cap)
-        return y, k, result, res, newton | fallback, cap
+        return y, k, result, res, newton | fallback, cap, refreshes + refresh, res0
 
     if lanes is None:
         y0_s = tuple(_jnp(v, dtype) for v in sc.split(y0))
     else:
         y0_s = tuple(y0[:, i] for i in range(m))
     init = (y0_s, full(0, jnp.int32), full(-1, jnp.int32), full(jnp.inf, dtype),
-            full(solver.chord_steps == 0, jnp.bool_), full(solver.max_steps, jnp.int32))
-    y, k, result, res, _, _ = _while_lanes(lambda c: c[2] < 0, outer_body, init, lanes)
+            full(solver.chord_steps == 0, jnp.bool_), full(solver.max_steps, jnp.int32),
+            full(0, jnp.int32), full(jnp.inf, dtype))
+    y, k, result, res, *_ = _while_lanes(lambda c: c[2] < 0, outer_body, init, lanes)
     return jnp.stack(y, axis=-1), result, k, res
 
 

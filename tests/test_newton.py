@@ -8,7 +8,14 @@ import pytest
 
 import lgvi_jax  # noqa: F401  (float64)
 from lgvi_jax.linalg import ldl_solve, small_solve, spd_inverse, spd_solve
-from lgvi_jax.newton import ChordInverse, Newton, NewtonError, newton_solve, raise_if_failed
+from lgvi_jax.newton import (
+    CHORD_REFRESHES,
+    ChordInverse,
+    Newton,
+    NewtonError,
+    newton_solve,
+    raise_if_failed,
+)
 from lgvi_jax.trajectory import RESULTS
 
 
@@ -155,6 +162,56 @@ def test_chord_phase_then_newton_fallback():
     assert int(mixed.result) == RESULTS.successful
     assert int(mixed.newton_steps) > int(full.newton_steps)  # chord iterations are counted too
     np.testing.assert_allclose(np.asarray(mixed.value), np.asarray(full.value), rtol=1e-12)
+
+
+def _chord_refresh_model(f, jac, y0, chord_steps, max_steps, refreshes, tol=1e-12):
+    """The documented ``chord_steps`` policy, written out in NumPy on one unknown:
+    ``(iterations, Jacobian evaluations, y)``."""
+    y, k, newton, used, res0, jacs = y0, 0, False, 0, None, 0
+    while True:
+        k_phase, J, prev = k, jac(y), np.inf
+        jacs += 1
+        while True:
+            F = f(y)
+            res0 = abs(F) if res0 is None else res0
+            res, d = abs(F), -F / J
+            y, k = y + d, k + 1
+            size = abs(d) / (tol + tol * abs(y))
+            if size <= 1.0:
+                return k, jacs, y
+            if newton:
+                assert k < k_phase + 1 + max_steps
+                break
+            if k - k_phase >= chord_steps or size > 0.5 * prev:
+                break
+            prev = size
+        if not newton:
+            if used < refreshes and res < res0:
+                used += 1
+            else:
+                y, newton = y0, True
+
+
+@pytest.mark.parametrize("scalar", [False, True])
+def test_stalled_chord_phase_refreshes_its_jacobian(scalar):
+    """A chord phase that stalls after reducing the residual starts again from its iterate
+    with the Jacobian there (CHORD_REFRESHES times) instead of restarting full Newton from
+    the guess: the same root as Newton's, the iterations of the policy written out in
+    NumPy, and fewer Jacobians than Newton from the guess (y³ = 2 from y = 2 and 3: the
+    chord contracts by ~0.6 per iteration there)."""
+    a = 2.0
+    for y0 in (2.0, 3.0):
+        sol = newton_solve(cubic, jnp.array([y0]), jnp.array([a]),
+                           Newton(chord_steps=8, scalar=scalar))
+        full = newton_solve(cubic, jnp.array([y0]), jnp.array([a]))
+        k, jacs, y = _chord_refresh_model(lambda y: y**3 - a, lambda y: 3 * y**2, y0, 8, 20,
+                                          CHORD_REFRESHES)
+        assert int(sol.result) == RESULTS.successful
+        assert int(sol.newton_steps) == k
+        assert jacs < int(full.newton_steps)
+        # Both stop on an update below the tolerance 1e-12: within a few ulps of the root.
+        np.testing.assert_allclose(float(sol.value[0]), a ** (1 / 3), rtol=1e-14)
+        np.testing.assert_allclose(float(sol.value[0]), y, rtol=1e-14)
 
 
 def test_unrolled_iterations_give_the_loop_iterates():
