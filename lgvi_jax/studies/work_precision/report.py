@@ -226,17 +226,23 @@ def write_summary(results: dict, out: Path) -> str:
     lines += ["## Winners per regime", "",
               "| regime | winner | best of ours | best peer | peer / ours |",
               "|---|---|---|---|---|"]
-    def cell(row, m):
+    def cell(row, m, missing="—"):
         if not row:
-            return "—"
+            return missing
         extra = f" in {_f(row['wall_s'])} s" if m == "invariant_error" else ""
         return f"{row['label']}: {_f(row[m])}{extra}"
+
+    def ratio_cell(g):
+        if g.get("best_ours") and not g.get("best_peer"):
+            return "∞ (no peer meets it)"
+        return _f(g.get("peer_over_ours"))
 
     for g in regs:
         m = g["metric"]
         lines.append(f"| {g['regime']} | {cell(g.get('winner'), m)} | "
-                     f"{cell(g.get('best_ours'), m)} | {cell(g.get('best_peer'), m)} | "
-                     f"{_f(g.get('peer_over_ours'))} |")
+                     f"{cell(g.get('best_ours'), m)} | "
+                     f"{cell(g.get('best_peer'), m, 'none meets the target')} | "
+                     f"{ratio_cell(g)} |")
     lines += ["", "Metric: wall time [s] to the target (lower is better), except *invariants* "
               "(worst invariant error) and *batch* (trajectories/s, higher is better); "
               "*peer / ours* > 1 means ours is better by that factor.", "",
