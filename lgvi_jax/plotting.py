@@ -116,7 +116,7 @@ def positive(values: Any, floor: float = 1e-17) -> np.ndarray:
 COLOURS = {"lgvi": "tab:blue", "hamel": "tab:orange", "hamel-cayley": "tab:green",
            "hamel-exact": "tab:purple", "hamel-cayley-exact": "tab:brown", "rk4": "tab:red",
            "gl4": "tab:cyan", "gl6": "navy", "rkmk4": "tab:gray", "verlet": "tab:purple",
-           "galerkin4": "tab:green", "galerkin6": "tab:olive"}
+           "galerkin4": "yellowgreen", "galerkin6": "tab:olive"}
 COMPOSED_COLOURS = {"4": "tab:pink", "6": "darkgoldenrod", "8": "teal"}
 
 

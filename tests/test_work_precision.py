@@ -93,3 +93,40 @@ def test_reproduce_full_runs_the_full_stages(tmp_path, monkeypatch):
     rp.reproduce(tmp_path, quick=True, full=True, log=logs.append)  # done: skipped
     assert calls == ["work_precision", "stability"] and sum("already done" in m for m in logs) == 2
     assert "stability summary" in (tmp_path / "README.md").read_text()
+
+
+def test_regimes_name_the_best_variational_method(tmp_path):
+    """Per regime: the winner, our best, our best variational method (Verlet, not RK4, on
+    the oscillator) and the peer's ratio over each; a regime no peer meets reads ∞."""
+    from lgvi_jax.studies.work_precision import metrics, report
+
+    def run(family, method, value, wall, err, **extra):
+        return {"family": family, "method": method, "param": "h" if family == "ours"
+                else "rtol", "value": value, "wall_s": wall, "failed": False, "horizon": 10.0,
+                "position_error_t10": err, **extra}
+
+    runs = [run("ours", "rk4", 0.1, 1.0, 1e-9), run("ours", "verlet", 0.01, 4.0, 1e-9),
+            run("ours", "verlet", 0.1, 0.5, 1e-3), run("diffrax", "diffrax dopri8", 1e-9,
+                                                       2.0, 1e-9)]
+    long = [run("ours", "verlet", 0.1, 3.0, None, energy_error_max=1e-7,
+                momentum_drift_max=1e-12),
+            run("diffrax", "diffrax dopri8", 1e-10, 1.0, None, energy_error_max=1e-7,
+                momentum_drift_max=1e-6)]
+    cfg = {"targets": {"short_tight": 1e-8, "short_moderate": 1e-4, "t50": 1e-5,
+                       "long_energy": 1e-6, "long_invariants": 1e-9},
+           "horizons": [10.0], "long_horizon": 5000.0}
+    regs = metrics.regimes({"systems": {"oscillator": {"runs": runs}},
+                            "long_all": {"oscillator": long}}, cfg)
+    tight = regs[0]
+    assert tight["winner"]["method"] == "rk4" and tight["best_ours"]["method"] == "rk4"
+    assert tight["best_variational"]["method"] == "verlet"
+    assert tight["peer_over_ours"] == pytest.approx(2.0)
+    assert tight["peer_over_variational"] == pytest.approx(0.5)
+    every = next(g for g in regs if "all invariants" in g["regime"])
+    assert every["best_variational"]["method"] == "verlet" and every["best_peer"] is None
+    results = {"regimes": regs, "environment": {"cpu_count": 2, "date": "d", "jax": "j",
+                                                 "diffrax": None}, "systems": {}, "files": []}
+    text = report.write_summary(results, tmp_path)
+    row = next(line for line in text.splitlines()
+               if "all invariants" in line and line.startswith("|"))
+    assert row.count("∞ (no peer meets it)") == 2

@@ -30,6 +30,16 @@ EUCLIDEAN_METHOD_NAMES: tuple[str, ...] = (
     "rk4", "gl4", "gl6", "verlet", "galerkin4", "galerkin6", "verlet@4", "verlet@6",
     "verlet@8",
 )
+#: Of those, the variational integrators (discrete Lagrangians on SO(3) x R^n, the paper's
+#: Hamel VIs among them; on R^n Verlet, Gauss–Legendre and the Galerkin VIs, compositions of
+#: them): the work-precision summary names the best of them per regime beside our best.
+VARIATIONAL_RIGID: frozenset[str] = frozenset({
+    "lgvi", "hamel", "hamel-cayley", "hamel-exact", "hamel-cayley-exact", "lgvi@4", "lgvi@6",
+    "lgvi@8", "galerkin4", "galerkin6", "galerkin8",
+})
+VARIATIONAL_EUCLIDEAN: frozenset[str] = frozenset({
+    "gl4", "gl6", "verlet", "galerkin4", "galerkin6", "verlet@4", "verlet@6", "verlet@8",
+})
 
 
 def _stderr(message: str) -> None:

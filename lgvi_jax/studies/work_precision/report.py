@@ -224,25 +224,27 @@ def write_summary(results: dict, out: Path) -> str:
         lines.append(f"- {results['scipy_long_note']}")
     lines += ["", "![work-precision](work_precision_car-paper.png)", ""]
     lines += ["## Winners per regime", "",
-              "| regime | winner | best of ours | best peer | peer / ours |",
-              "|---|---|---|---|---|"]
+              "| regime | winner | best of ours | best peer | peer / ours "
+              "| best variational of ours | peer / variational |",
+              "|---|---|---|---|---|---|---|"]
     def cell(row, m, missing="—"):
         if not row:
             return missing
         extra = f" in {_f(row['wall_s'])} s" if m == "invariant_error" else ""
         return f"{row['label']}: {_f(row[m])}{extra}"
 
-    def ratio_cell(g):
-        if g.get("best_ours") and not g.get("best_peer"):
+    def ratio_cell(g, ours="best_ours", key="peer_over_ours"):
+        if g.get(ours) and not g.get("best_peer"):
             return "∞ (no peer meets it)"
-        return _f(g.get("peer_over_ours"))
+        return _f(g.get(key))
 
     for g in regs:
         m = g["metric"]
         lines.append(f"| {g['regime']} | {cell(g.get('winner'), m)} | "
                      f"{cell(g.get('best_ours'), m)} | "
                      f"{cell(g.get('best_peer'), m, 'none meets the target')} | "
-                     f"{ratio_cell(g)} |")
+                     f"{ratio_cell(g)} | {cell(g.get('best_variational'), m)} | "
+                     f"{ratio_cell(g, 'best_variational', 'peer_over_variational')} |")
     lines += ["", "Metric: wall time [s] to the target (lower is better), except *invariants* "
               "(worst invariant error) and *batch* (trajectories/s, higher is better); "
               "*peer / ours* > 1 means ours is better by that factor.", "",
