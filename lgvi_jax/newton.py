@@ -224,6 +224,19 @@ _BROYDEN_TIGHTEN = 0.1
 CHORD_REFRESHES = 2
 
 
+def _chord_phase_end(newton, result, refreshes, res, res0, k, cap, max_steps: int):
+    """The decision after a phase of the ``chord_steps`` iteration (array and scalar loops
+    alike): a chord phase that did not converge starts again from its iterate with a fresh
+    Jacobian if it reduced the residual below the guess's (``res < res0``, at most
+    :data:`CHORD_REFRESHES` times), else the solve falls back to full Newton from the guess
+    with ``max_steps`` more iterations. Returns ``(fallback, newton, cap, refreshes)``."""
+    failed = ~newton & (result < 0)
+    refresh = failed & (refreshes < CHORD_REFRESHES) & (res < res0)
+    fallback = failed & ~refresh
+    return fallback, newton | fallback, jnp.where(fallback, k + max_steps, cap), \
+        refreshes + refresh
+
+
 def _inverse(J, solve):
     """``J⁻¹`` of a small matrix, column by column with ``solve``."""
     eye = jnp.eye(J.shape[-1], dtype=J.dtype)
@@ -460,14 +473,10 @@ def _iterate_chord_refresh(f, y0, solver: Newton):
 
         y, k, result, res, _, stalled = jax.lax.while_loop(
             inner_cond, inner_body, (y, k, result, res, size, stalled | newton))
-        # A chord phase that did not converge: from its iterate with a fresh Jacobian if it
-        # made progress, else from the guess with full Newton.
-        failed = ~newton & (result < 0)
-        refresh = failed & (refreshes < CHORD_REFRESHES) & (res < res0)
-        fallback = failed & ~refresh
+        fallback, newton, cap, refreshes = _chord_phase_end(
+            newton, result, refreshes, res, res0, k, cap, solver.max_steps)
         y = jnp.where(fallback, y0, y)
-        cap = jnp.where(fallback, k + solver.max_steps, cap)
-        return y, k, result, res, newton | fallback, cap, refreshes + refresh, res0
+        return y, k, result, res, newton, cap, refreshes, res0
 
     zero = jnp.asarray(0, jnp.int32)
     init = (y0, zero, jnp.asarray(-1, jnp.int32), inf, jnp.asarray(False),
@@ -814,14 +823,10 @@ def _iterate_scalar(programs, y0, args, solver: Newton, lanes: int | None = None
             lambda c: (c[2] < 0) & ~c[5], inner_body,
             (y, k, full(-1, jnp.int32), full(jnp.inf, dtype), full(jnp.inf, dtype),
              full(False, jnp.bool_), res0), lanes)
-        # A chord phase that did not converge: from its iterate with a fresh Jacobian if it
-        # made progress (_iterate_chord_refresh), else from the guess with full Newton.
-        failed = ~newton & (result < 0)
-        refresh = failed & (refreshes < CHORD_REFRESHES) & (res < res0)
-        fallback = failed & ~refresh
+        fallback, newton, cap, refreshes = _chord_phase_end(
+            newton, result, refreshes, res, res0, k, cap, solver.max_steps)
         y = tuple(jnp.where(fallback, a, b) for a, b in zip(y0_s, y, strict=True))
-        cap = jnp.where(fallback, k + solver.max_steps, cap)
-        return y, k, result, res, newton | fallback, cap, refreshes + refresh, res0
+        return y, k, result, res, newton, cap, refreshes, res0
 
     if lanes is None:
         y0_s = tuple(_jnp(v, dtype) for v in sc.split(y0))

@@ -175,18 +175,6 @@ class LieGalerkinVI(AbstractLieVI):
         # through differences (AbstractLieVI._finish).
         return RigidState(R=R0 @ so3.exp(w), mu=mu1, q=q0 + h * u, p=p0 + (gq0 + gq1))
 
-    # --- unused parts of the second-order engine ------------------------------------------
-    def tau_minus_identity(self, w):
-        return so3.exp_minus_identity(w)
-
-    def variations(self, w):
-        return so3.dexp_inv(w), so3.dexp_left_inv(w)
-
-    def legendre(self, model, R0, w, q0, u, h):
-        raise NotImplementedError("LieGalerkinVI: the Legendre transforms depend on the inner "
-                                  "nodes; see _residual and _finish")
-
-
 
 @with_scalar_newton.register(LieGalerkinVI)
 def _(method: LieGalerkinVI) -> LieGalerkinVI:

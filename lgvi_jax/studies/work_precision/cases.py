@@ -24,6 +24,8 @@ from lgvi_jax.systems.car_pendulum import HandReference, moving_problem, paper_p
 
 #: The times at which positions are compared with the reference.
 CHECK_TIMES = (10.0, 50.0)
+#: The cases on the car-pendulum (SO(3) x R^2); the other one is the oscillator.
+RIGID_CASES = ("car-paper", "car-moving")
 
 
 @dataclasses.dataclass
@@ -110,7 +112,7 @@ def make_case(key: str, ref_rtol: float = 1e-13) -> Case:
     """``car-paper`` (the paper's state), ``car-moving`` (non-zero horizontal momentum,
     :func:`lgvi_jax.systems.car_pendulum.moving_problem`) or ``oscillator`` (m = k = q0 = 1,
     p0 = 0)."""
-    if key in ("car-paper", "car-moving"):
+    if key in RIGID_CASES:
         problem, title = ((paper_problem(), "car-pendulum, paper state") if key == "car-paper"
                           else (moving_problem(), "car-pendulum, moving cart"))
         return Case(key, title, "car-pendulum", problem.model, problem.state0, ref_rtol,

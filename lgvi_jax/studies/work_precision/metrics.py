@@ -13,7 +13,7 @@ import numpy as np
 from lgvi_jax.studies import VARIATIONAL_EUCLIDEAN, VARIATIONAL_RIGID
 from lgvi_jax.systems import get_system
 
-from .cases import CHECK_TIMES, Case
+from .cases import CHECK_TIMES, RIGID_CASES, Case
 from .runners import run_ours
 
 
@@ -89,7 +89,7 @@ def _fastest(runs: list[dict], ok: Callable[[dict], bool]) -> dict[str, dict]:
 
 def _variational(key: str) -> frozenset[str]:
     """Our variational methods on the system of a regime key."""
-    return VARIATIONAL_EUCLIDEAN if key == "oscillator" else VARIATIONAL_RIGID
+    return VARIATIONAL_RIGID if key in RIGID_CASES else VARIATIONAL_EUCLIDEAN
 
 
 def _regime(name: str, description: str, best: dict[str, dict], value_key: str,
