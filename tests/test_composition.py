@@ -29,6 +29,7 @@ from lgvi_jax.integrators import (
     GaussLegendre,
     StormerVerlet,
     compose,
+    default_scheme,
     resolve_method,
 )
 from lgvi_jax.integrators.order_conditions import (
@@ -56,14 +57,14 @@ def test_coefficients_satisfy_the_order_conditions_to_round_off(name):
     the logarithm of the composition vanish), and the next weight does not: the order is
     exactly p. The classical polynomial conditions are checked separately with fsum."""
     scheme = SCHEMES[name]
-    g, p = scheme.gammas, scheme.order
+    g, p, q = scheme.gammas, scheme.order, scheme.base_order
     assert g == g[::-1]  # palindromic: the composition is symmetric
     # Consistency to a few ulps of the largest |γ| (<= 2): each γ is rounded once.
     assert abs(math.fsum(g) - 1.0) <= 1e-15
-    for k in range(3, p, 2):  # Σγ³ = 0 (order 4), Σγ⁵ = 0 (6), Σγ⁷ = 0 (8)
+    for k in range(q + 1, p, 2):  # Σγ³ = 0 (order 4), Σγ⁵ = 0 (6), Σγ⁷ = 0 (8)
         # Round-off: the terms are up to |γ|^k ~ 1.9^7 ~ 100 (Yoshida's order 8).
         assert abs(math.fsum(x**k for x in g)) <= 1e-14 * math.fsum(abs(x) ** k for x in g)
-    conds = order_conditions(g, p + 1)
+    conds = order_conditions(g, p + 1, q)
     assert conds[1] == {(1,): pytest.approx(1.0, abs=1e-15)}
     for w in range(2, p + 1):
         scale = math.fsum(abs(x) ** w for x in g)
@@ -72,7 +73,7 @@ def test_coefficients_satisfy_the_order_conditions_to_round_off(name):
         assert worst <= 1e-14 * scale, (name, w, worst)
     leading = max(abs(c) for c in conds[p + 1].values())
     assert leading > 1e-5  # order p, not p + 2
-    assert composition_order(g) == p
+    assert composition_order(g, q) == p
 
 
 @pytest.mark.parametrize("name", list(YOSHIDA_PUBLISHED))
@@ -95,11 +96,51 @@ def test_refined_yoshida_coefficients_match_the_published_digits(name):
 
 def test_defaults_have_the_smallest_error_constant_at_equal_cost():
     """The default scheme of each order minimises s^p ‖E_{p+1}‖ (leading error at equal
-    work) among the stored schemes of that order."""
+    work) among the stored schemes of that order for a second-order base, and
+    ``default_scheme`` agrees with the precomputed table."""
     for order, default in DEFAULT_SCHEMES.items():
         cost = {n: s.stages**order * error_constant(s.gammas)
-                for n, s in SCHEMES.items() if s.order == order}
+                for n, s in SCHEMES.items() if composition_order(s.gammas) == order}
         assert min(cost, key=cost.get) == default, cost
+        assert default_scheme(order) == default
+
+
+def test_higher_order_bases_get_the_schemes_built_for_them():
+    """``METHOD@ORDER`` of a base of order 4 or 6 (``gl4``, ``galerkin4/6``) uses Suzuki's
+    five-stage fractal for that base order, not a scheme for a second-order base with more
+    stages; a scheme built for another base order is refused by name."""
+    assert default_scheme(6, 4) == "suzuki6" and default_scheme(8, 6) == "suzuki8"
+    m = compose(GaussLegendre(stages=2), order=6)
+    assert (m.name, m.order, m.stages) == ("gl4@suzuki6", 6, 5)
+    assert resolve_method("galerkin6@8", RIGID_METHODS).name == "galerkin6@suzuki8"
+    assert compose(GaussLegendre(stages=2), scheme="kahan-li6").order == 6
+    with pytest.raises(ValueError, match=r"suzuki6 raises a base of order 4 .* lgvi has order 2"):
+        compose(LGVI(), scheme="suzuki6")
+    with pytest.raises(ValueError, match="already has order 4; order 4 would not raise it"):
+        compose(GaussLegendre(stages=2), order=4)
+
+
+def test_schemes_for_higher_order_bases_win_at_equal_work():
+    """The reason for the choice above, on the matrix problem below with an order-4 base
+    (the triple jump of Strang splitting): at equal work (the same number of base steps
+    over [0, 1]) ``suzuki6`` (5 stages) is more accurate than ``kahan-li6`` (9 stages) by
+    the ratio of their s^p ‖E_7‖, 1.9e4 / 52 ≈ 360 (measured 320–390); on an order-6 base
+    ``suzuki8`` against ``kahan-li8`` (17 stages) by ≈ 5e4 (measured 5.8e4 at 85 base
+    steps). Bounds: 10x below the predicted ratios."""
+    A, B = _matrices()
+    exact = expm(A + B)
+
+    def error(scheme, base_order, n):
+        gam = SCHEMES[scheme].gammas
+        step = np.eye(5)
+        for g in gam:
+            step = _base_step(A, B, g / n, base_order) @ step
+        return np.linalg.norm(np.linalg.matrix_power(step, n) - exact)
+
+    for n in (2, 4):  # errors 1e-6 .. 1e-11: asymptotic, above round-off (~1e-13)
+        assert error("kahan-li6", 4, 5 * n) > 36 * error("suzuki6", 4, 9 * n)
+    # suzuki8 at 17 steps: 3e-12, within ~10x of the products' round-off; kahan-li8 2e-7.
+    assert error("kahan-li8", 6, 5) > 1000 * error("suzuki8", 6, 17)
 
 
 def test_order_depends_on_the_base_order():
@@ -117,27 +158,46 @@ def _strang(A, B, h):
     return expm(0.5 * h * A) @ expm(h * B) @ expm(0.5 * h * A)
 
 
+def _base_step(A, B, h, order):
+    """A symmetric step of the given order (2, 4 or 6): Strang splitting, raised by the
+    triple jumps for order-2 and order-4 bases."""
+    if order == 2:
+        return _strang(A, B, h)
+    lift = {4: "triple-jump", 6: "triple-jump6"}[order]
+    step = np.eye(5)
+    for g in SCHEMES[lift].gammas:
+        step = _base_step(A, B, g * h, order - 2) @ step
+    return step
+
+
+def _matrices():
+    rng = np.random.default_rng(7)
+    return (0.6 * rng.standard_normal((5, 5)) for _ in range(2))
+
+
 #: Steps 1/n of the matrix test per scheme: where the error is between ~1e-3 (asymptotic
 #: range: the local slopes differ from the order by < 0.15, measured) and ~1e-11 (above the
 #: round-off of the matrix products, ~1e-13).
 MATRIX_STEPS = {"triple-jump": (8, 10, 12, 16), "suzuki4": (4, 6, 8, 10),
                 "yoshida6": (4, 5, 6, 8), "kahan-li6": (3, 4, 5, 6),
                 "yoshida8": (6, 8, 10, 12), "kahan-li8-s15": (2, 3, 4, 5),
-                "kahan-li8": (4, 5, 6, 8)}
+                "kahan-li8": (4, 5, 6, 8), "triple-jump6": (6, 8, 10, 12, 16),
+                "suzuki6": (3, 4, 5, 6, 8), "triple-jump8": (8, 10, 12, 16),
+                "suzuki8": (3, 4, 5, 6)}
 
 
 @pytest.mark.parametrize("name", list(SCHEMES))
 def test_order_on_a_problem_with_known_exact_flow(name):
     """Independent of the algebra above: Strang splitting ``e^{hA/2} e^{hB} e^{hA/2}``
     (symmetric, order 2; Störmer–Verlet for a linear system) with random non-commuting
-    5x5 matrices, composed with the scheme's γ's, against the exact flow ``e^{T(A+B)}``:
-    the observed order of the global error at T = 1 over the steps of ``MATRIX_STEPS``
-    is the scheme's order ± 0.2 (measured within 0.15). A wrong digit in a coefficient at
-    1e-k adds an error ~1e-k h² that would dominate at these steps for k < ~8; the order
-    conditions test above catches the rest."""
+    5x5 matrices, raised by triple jumps to the scheme's base order (4 or 6) where it is
+    built for one, composed with the scheme's γ's, against the exact flow
+    ``e^{T(A+B)}``: the observed order of the global error at T = 1 over the steps of
+    ``MATRIX_STEPS`` is the scheme's order ± 0.2 (measured within 0.15). A wrong digit in a
+    coefficient at 1e-k adds an error ~1e-k h^q (q the base order) that would dominate at
+    these steps for k < ~8; the order conditions test above catches the rest."""
     scheme = SCHEMES[name]
-    rng = np.random.default_rng(7)
-    A, B = (0.6 * rng.standard_normal((5, 5)) for _ in range(2))
+    A, B = _matrices()
     exact = expm(A + B)
     ns = MATRIX_STEPS[name]
     errors = []
@@ -145,17 +205,17 @@ def test_order_on_a_problem_with_known_exact_flow(name):
         h = 1.0 / n
         step = np.eye(5)
         for g in scheme.gammas:
-            step = _strang(A, B, g * h) @ step
+            step = _base_step(A, B, g * h, scheme.base_order) @ step
         errors.append(np.linalg.norm(np.linalg.matrix_power(step, n) - exact))
     slope = observed_order([1.0 / n for n in ns], errors)
     assert 1e-11 < min(errors) and max(errors) < 1e-2, errors
     assert abs(slope - scheme.order) <= 0.2, (slope, errors)
-    # A perturbed middle coefficient (1e-6, renormalised) breaks Σγ³ = 0: order 2.
+    # A perturbed middle coefficient (1e-6, renormalised) breaks Σγ^{q+1} = 0: order q.
     bad = list(scheme.gammas)
     mid = len(bad) // 2
     bad[mid] += 1e-6
     bad = [x / math.fsum(bad) for x in bad]
-    assert composition_order(tuple(bad)) == 2
+    assert composition_order(tuple(bad), scheme.base_order) == scheme.base_order
 
 
 # ------------------------------------------------------------- the syntax and the API

@@ -17,6 +17,7 @@ from .schemes import (
     CompositionScheme,
     MethodTable,
     compose,
+    default_scheme,
     parse_method,
     resolve_method,
 )
@@ -76,6 +77,7 @@ __all__ = [
     "StormerVerlet",
     "Variation",
     "compose",
+    "default_scheme",
     "parse_method",
     "resolve_method",
     "with_chord_matrix",

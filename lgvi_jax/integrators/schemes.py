@@ -27,7 +27,20 @@ name                order  stages  source
 ``yoshida8``        8      15      Yoshida (1990), Table 2, solution D (15 digits; refined)
 ``kahan-li8-s15``   8      15      Kahan & Li (1997), ``s15odr8``; HLW §V.3.2
 ``kahan-li8``       8      17      Kahan & Li (1997), ``s17odr8a``; HLW §V.3.2
+``triple-jump6``    6      3       the triple jump for an order-4 base: :math:`2^{1/5}` for
+                                   :math:`2^{1/3}`
+``suzuki6``         6      5       Suzuki's fractal for an order-4 base: :math:`4^{1/5}`
+``triple-jump8``    8      3       the triple jump for an order-6 base: :math:`2^{1/7}`
+``suzuki8``         8      5       Suzuki's fractal for an order-6 base: :math:`4^{1/7}`
 ==================  =====  ======  ============================================================
+
+The orders are those given to a second-order symmetric base, except for the last four,
+built for a base of order :math:`q = 4` or :math:`6` (``gl4``, ``galerkin4``, ``gl6``,
+``galerkin6``; :attr:`CompositionScheme.base_order`): the same constructions with the
+exponent :math:`1/(q+1)`, which cancel :math:`\sum\gamma_i^{q+1}`, the only condition of
+weight :math:`q + 1` on such a base (HLW §II.4). A scheme built for a lower base order also
+works on a higher one (its conditions include the base's); one built for a higher base
+order is refused on a lower one.
 
 Every set satisfies the order conditions of its order to round-off
 (:func:`~lgvi_jax.integrators.order_conditions.order_conditions`; the conditions of the next
@@ -49,6 +62,12 @@ Yoshida's). The car-pendulum agrees (``tests/test_composition.py`` step ranges;
 configuration error at T = 1, h = 0.05): ``lgvi@kahan-li8`` 1.4e-8, ``lgvi@kahan-li8-s15``
 1.5e-7, ``lgvi@yoshida8`` 7.8e-4; ``lgvi@kahan-li6`` 1.2e-5 against ``lgvi@yoshida6`` 3.3e-4.
 
+For a base of order 4 or 6 the same criterion, computed for that base order
+(:func:`default_scheme`), picks ``suzuki6`` (``gl4@6``, ``galerkin4@6``: 52 against 1.9e4
+for ``kahan-li6``) and ``suzuki8`` (``galerkin6@8``: 103 against 5.3e6 for ``kahan-li8``);
+on a matrix problem with a known flow the errors at equal work differ by those ratios
+(``tests/test_composition.py``).
+
 References: M. Creutz, A. Gocksch, *Higher-order hybrid Monte Carlo algorithms*, Phys. Rev.
 Lett. 63 (1989) 9–12; H. Yoshida, *Construction of higher order symplectic integrators*,
 Phys. Lett. A 150 (1990) 262–268; M. Suzuki, *Fractal decomposition of exponential operators
@@ -68,6 +87,7 @@ from collections.abc import Callable, Iterator, Mapping
 
 from .base import AbstractIntegrator
 from .composition import Composition
+from .order_conditions import composition_order, error_constant
 
 __all__ = [
     "DEFAULT_SCHEMES",
@@ -75,6 +95,7 @@ __all__ = [
     "CompositionScheme",
     "MethodTable",
     "compose",
+    "default_scheme",
     "parse_method",
     "resolve_method",
 ]
@@ -87,13 +108,14 @@ __all__ = [
 
 @dataclasses.dataclass(frozen=True)
 class CompositionScheme:
-    """A named coefficient set: ``gammas`` (palindromic, summing to 1), the order it gives
-    to a second-order symmetric base method, and its source."""
+    """A named coefficient set: ``gammas`` (palindromic, summing to 1), the ``order`` it
+    gives to a symmetric base method of order ``base_order``, and its source."""
 
     name: str
     order: int
     gammas: tuple[float, ...]
     source: str
+    base_order: int = 2
 
     @property
     def stages(self) -> int:
@@ -108,6 +130,22 @@ def _palindrome(half: tuple[float, ...], middle: float | None = None) -> tuple[f
 
 _C3 = 2.0 ** (1.0 / 3.0)
 _C4 = 4.0 ** (1.0 / 3.0)
+
+
+def _triple_jump(q: int) -> tuple[float, ...]:
+    r"""Yoshida's triple jump raising a symmetric method of order ``q`` to ``q + 2``:
+    :math:`\gamma_1 = \gamma_3 = 1/(2 - 2^{1/(q+1)})`, :math:`\gamma_2 = 1 - 2\gamma_1`."""
+    c = 2.0 ** (1.0 / (q + 1))
+    g = 1.0 / (2.0 - c)
+    return (g, -c * g, g)
+
+
+def _suzuki(q: int) -> tuple[float, ...]:
+    r"""Suzuki's five-stage fractal raising order ``q`` to ``q + 2``:
+    :math:`\gamma_{1,2,4,5} = 1/(4 - 4^{1/(q+1)})`, :math:`\gamma_3 = 1 - 4\gamma_1`."""
+    c = 4.0 ** (1.0 / (q + 1))
+    g = 1.0 / (4.0 - c)
+    return (g, g, -c * g, g, g)
 
 SCHEMES: dict[str, CompositionScheme] = {
     s.name: s
@@ -167,12 +205,44 @@ SCHEMES: dict[str, CompositionScheme] = {
                         -0.60550853383003451169892108),
             "Kahan & Li 1997, s17odr8a; HLW §V.3.2",
         ),
+        # One level up from a higher-order symmetric base (``gl4``, ``galerkin4/6``): the
+        # same constructions with the exponent 1/(q + 1) of the base order q.
+        CompositionScheme("triple-jump6", 6, _triple_jump(4),
+                          "Yoshida 1990; Suzuki 1990; HLW §II.4 (order-4 base)", base_order=4),
+        CompositionScheme("suzuki6", 6, _suzuki(4),
+                          "Suzuki 1990; HLW §II.4 (order-4 base)", base_order=4),
+        CompositionScheme("triple-jump8", 8, _triple_jump(6),
+                          "Yoshida 1990; Suzuki 1990; HLW §II.4 (order-6 base)", base_order=6),
+        CompositionScheme("suzuki8", 8, _suzuki(6),
+                          "Suzuki 1990; HLW §II.4 (order-6 base)", base_order=6),
     )
 }
 
-#: The scheme chosen for ``METHOD@ORDER`` (smallest error constant at equal cost; module
-#: docstring).
+#: The scheme chosen for ``METHOD@ORDER`` of a second-order base (smallest error constant at
+#: equal cost; module docstring); :func:`default_scheme` for any base order.
 DEFAULT_SCHEMES: dict[int, str] = {4: "suzuki4", 6: "kahan-li6", 8: "kahan-li8"}
+
+
+@functools.cache
+def default_scheme(order: int, base_order: int = 2) -> str:
+    r"""The scheme ``compose(base, order=order)`` uses for a symmetric base of order
+    ``base_order``: among the stored schemes that give exactly ``order`` to such a base,
+    the one with the smallest :math:`s^p\,\|E_{p+1}\|_2` (its leading error at equal work,
+    computed for that base order: :func:`~lgvi_jax.integrators.order_conditions.error_constant`).
+    For a second-order base this is :data:`DEFAULT_SCHEMES` (precomputed; a test checks
+    it). Raises ``ValueError`` if ``order`` does not exceed ``base_order`` or no stored
+    scheme gives it."""
+    if order <= base_order:
+        raise ValueError(f"default_scheme: order {order} does not exceed the base order "
+                         f"{base_order}")
+    if base_order == 2 and order in DEFAULT_SCHEMES:
+        return DEFAULT_SCHEMES[order]
+    cost = {n: s.stages**order * error_constant(s.gammas, base_order)
+            for n, s in SCHEMES.items() if composition_order(s.gammas, base_order) == order}
+    if not cost:
+        raise ValueError(f"default_scheme: no stored scheme raises a base of order "
+                         f"{base_order} to order {order}")
+    return min(cost, key=cost.get)
 
 
 # ---------------------------------------------------------------------------------------
@@ -181,16 +251,21 @@ DEFAULT_SCHEMES: dict[int, str] = {4: "suzuki4", 6: "kahan-li6", 8: "kahan-li8"}
 
 
 def _scheme_list() -> str:
-    return ", ".join(f"{n} (order {s.order}, {s.stages} stages)" for n, s in SCHEMES.items())
+    return ", ".join(
+        f"{n} (order {s.order}, {s.stages} stages"
+        + ("" if s.base_order == 2 else f", for an order-{s.base_order} base") + ")"
+        for n, s in SCHEMES.items())
 
 
 def compose(base: AbstractIntegrator, order: int | None = None, *, scheme: str | None = None,
             warm_start: bool = True) -> Composition:
-    """Compose ``base`` to the given ``order`` (4, 6 or 8; the default scheme of
-    :data:`DEFAULT_SCHEMES`) or with a named ``scheme`` (a key of :data:`SCHEMES`).
+    """Compose ``base`` to the given ``order`` (4, 6 or 8; the scheme
+    :func:`default_scheme` picks for the base's order) or with a named ``scheme`` (a key of
+    :data:`SCHEMES`).
 
-    Raises ``ValueError`` for an unknown order or scheme, a non-symmetric base, or a base
-    whose order is already at least the scheme's.
+    Raises ``ValueError`` for an unknown order or scheme, a non-symmetric base, a base
+    whose order is already at least the requested one, or a scheme that does not raise the
+    base's order (one built for another base order).
     """
     if (order is None) == (scheme is None):
         raise ValueError("compose: give exactly one of order (4, 6, 8) or scheme "
@@ -199,7 +274,11 @@ def compose(base: AbstractIntegrator, order: int | None = None, *, scheme: str |
         if isinstance(order, bool) or order not in DEFAULT_SCHEMES:
             raise ValueError(f"compose: order must be one of {sorted(DEFAULT_SCHEMES)}, got "
                              f"{order!r}")
-        scheme = DEFAULT_SCHEMES[order]
+        if isinstance(base, AbstractIntegrator) and base.symmetric and base.order >= order:
+            raise ValueError(f"compose: {base.name} already has order {base.order}; order "
+                             f"{order} would not raise it")
+        scheme = (default_scheme(order, base.order) if isinstance(base, AbstractIntegrator)
+                  and base.symmetric else DEFAULT_SCHEMES[order])
     if scheme not in SCHEMES:
         raise ValueError(f"compose: unknown scheme {scheme!r}; valid schemes: {_scheme_list()}")
     spec = SCHEMES[scheme]
@@ -213,6 +292,11 @@ def compose(base: AbstractIntegrator, order: int | None = None, *, scheme: str |
     if base.order >= spec.order:
         raise ValueError(f"compose: {base.name} already has order {base.order}; scheme "
                          f"{scheme} (order {spec.order}) would not raise it")
+    got = composition_order(spec.gammas, base.order)
+    if got <= base.order:
+        raise ValueError(f"compose: scheme {scheme} raises a base of order {spec.base_order} "
+                         f"to order {spec.order}; {base.name} has order {base.order}, which it "
+                         f"would not raise (order {got})")
     return Composition(base, spec.gammas, scheme=scheme, warm_start=warm_start)
 
 
