@@ -1,6 +1,8 @@
 """The command line: outputs, the JSON summary, and clear errors (exit 2, no traceback)."""
 
+import io
 import json
+import os
 import re
 import subprocess
 import sys
@@ -178,6 +180,32 @@ def test_console_script_is_declared_and_runs(tmp_path, capsys):
                             "--t-final", "1", "--out", str(out)], capsys)
     assert code == 2
     assert "Traceback" not in err and "--dt must be" in err
+
+
+def test_closed_standard_output_ends_quietly(tmp_path, monkeypatch, capsys):
+    """``lgvi-jax info | head``: the reader closes the pipe; the command stops with the
+    shell's SIGPIPE status and no traceback, and standard output then goes to the null
+    device (so the flush at exit does not raise again)."""
+
+    class ClosedPipe(io.TextIOBase):
+        def __init__(self, fd):
+            self.fd = fd
+
+        def write(self, text):
+            raise BrokenPipeError(32, "Broken pipe")
+
+        def fileno(self):
+            return self.fd
+
+    fd = os.open(tmp_path / "stdout", os.O_WRONLY | os.O_CREAT)
+    try:
+        monkeypatch.setattr(sys, "stdout", ClosedPipe(fd))
+        code = main(["info"])
+        assert code == 141
+        assert os.path.samestat(os.fstat(fd), os.stat(os.devnull))
+    finally:
+        os.close(fd)
+    assert "Traceback" not in capsys.readouterr().err
 
 
 # ------------------------------------------------------------------- rigid bodies

@@ -2,7 +2,8 @@
 
 A thin layer over the library. Bad input exits with status 2 and a one-line message (no
 traceback); a run whose integration fails still writes its output (with the failure
-recorded in it), prints what failed, and exits with status 1.
+recorded in it), prints what failed, and exits with status 1; a closed standard output
+(``| head``) ends the command quietly with status 141.
 
 One module per command holds its function and its options (``register``);
 :mod:`lgvi_jax.cli._common` holds what the commands share.
@@ -49,6 +50,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"{PROG} {args.command}: interrupted", file=sys.stderr)
         code = 130
+    except BrokenPipeError:
+        # The reader of standard output went away (``... --json | head``): stop quietly,
+        # with the shell's status for SIGPIPE, like other command-line tools; what later
+        # flushes write goes nowhere instead of raising again at exit.
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        code = 141
     if args.command == "sweep":  # a distributed sweep that did not complete ends here
         from ..distributed import end_process
 
