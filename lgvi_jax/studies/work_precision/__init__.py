@@ -41,7 +41,8 @@ below a target), *t = 50 s*, *long horizon* (fastest to a max relative energy er
 5000 s below a target), *invariants* (smallest momentum-map and SO(3) errors over 5000 s) and
 *batch throughput* (trajectories per second for a batch of perturbed initial states, each
 method at the cheapest setting that meets the short-horizon target on the single
-trajectory; ours through :func:`lgvi_jax.sweep.batch_arguments`, diffrax through
+trajectory: our fastest methods, every diffrax solver, adaptive and fixed-step apart, and
+SciPy's fastest; ours through :func:`lgvi_jax.sweep.batch_arguments`, diffrax through
 ``jax.vmap``, SciPy serially).
 
 References: Hairer, Nørsett, Wanner, *Solving ODEs I* (1993), §II.10 (work-precision
