@@ -69,8 +69,10 @@ def test_coefficients_satisfy_the_order_conditions_to_round_off(name):
     for w in range(2, p + 1):
         scale = math.fsum(abs(x) ** w for x in g)
         worst = max((abs(c) for c in conds.get(w, {}).values()), default=0.0)
-        # Round-off of products of up to w factors |γ| <= 2, summed over the stages.
-        assert worst <= 1e-14 * scale, (name, w, worst)
+        # Round-off of products of up to w factors |γ| <= 2, summed over the stages, and of
+        # the logarithm's cancellations, whose terms include powers of Σγ = 1: relative to
+        # max(1, Σ|γ|^w), as composition_order measures it (Σ|γ|^8 of suzuki8 is 2.5e-3).
+        assert worst <= 1e-14 * max(1.0, scale), (name, w, worst)
     leading = max(abs(c) for c in conds[p + 1].values())
     assert leading > 1e-5  # order p, not p + 2
     assert composition_order(g, q) == p
