@@ -128,35 +128,31 @@ def _palindrome(half: tuple[float, ...], middle: float | None = None) -> tuple[f
     return (*half, mid, *reversed(half))
 
 
-_C3 = 2.0 ** (1.0 / 3.0)
-_C4 = 4.0 ** (1.0 / 3.0)
-
-
 def _triple_jump(q: int) -> tuple[float, ...]:
     r"""Yoshida's triple jump raising a symmetric method of order ``q`` to ``q + 2``:
-    :math:`\gamma_1 = \gamma_3 = 1/(2 - 2^{1/(q+1)})`, :math:`\gamma_2 = 1 - 2\gamma_1`."""
+    :math:`\gamma_1 = \gamma_3 = 1/(2 - c)`, :math:`\gamma_2 = -c/(2 - c)`,
+    :math:`c = 2^{1/(q+1)}`."""
     c = 2.0 ** (1.0 / (q + 1))
-    g = 1.0 / (2.0 - c)
-    return (g, -c * g, g)
+    return (1 / (2 - c), -c / (2 - c), 1 / (2 - c))
 
 
 def _suzuki(q: int) -> tuple[float, ...]:
     r"""Suzuki's five-stage fractal raising order ``q`` to ``q + 2``:
-    :math:`\gamma_{1,2,4,5} = 1/(4 - 4^{1/(q+1)})`, :math:`\gamma_3 = 1 - 4\gamma_1`."""
+    :math:`\gamma_{1,2,4,5} = 1/(4 - c)`, :math:`\gamma_3 = -c/(4 - c)`,
+    :math:`c = 4^{1/(q+1)}`."""
     c = 4.0 ** (1.0 / (q + 1))
-    g = 1.0 / (4.0 - c)
-    return (g, g, -c * g, g, g)
+    return (1 / (4 - c), 1 / (4 - c), -c / (4 - c), 1 / (4 - c), 1 / (4 - c))
 
 SCHEMES: dict[str, CompositionScheme] = {
     s.name: s
     for s in (
         CompositionScheme(
-            "triple-jump", 4, (1 / (2 - _C3), -_C3 / (2 - _C3), 1 / (2 - _C3)),
+            "triple-jump", 4, _triple_jump(2),
             "Creutz & Gocksch 1989; Yoshida 1990; Suzuki 1990; HLW §II.4",
         ),
         CompositionScheme(
             "suzuki4", 4,
-            (1 / (4 - _C4), 1 / (4 - _C4), -_C4 / (4 - _C4), 1 / (4 - _C4), 1 / (4 - _C4)),
+            _suzuki(2),
             "Suzuki 1990 (fractal decomposition); HLW §II.4",
         ),
         CompositionScheme(
@@ -270,18 +266,11 @@ def compose(base: AbstractIntegrator, order: int | None = None, *, scheme: str |
     if (order is None) == (scheme is None):
         raise ValueError("compose: give exactly one of order (4, 6, 8) or scheme "
                          f"({', '.join(SCHEMES)})")
-    if order is not None:
-        if isinstance(order, bool) or order not in DEFAULT_SCHEMES:
-            raise ValueError(f"compose: order must be one of {sorted(DEFAULT_SCHEMES)}, got "
-                             f"{order!r}")
-        if isinstance(base, AbstractIntegrator) and base.symmetric and base.order >= order:
-            raise ValueError(f"compose: {base.name} already has order {base.order}; order "
-                             f"{order} would not raise it")
-        scheme = (default_scheme(order, base.order) if isinstance(base, AbstractIntegrator)
-                  and base.symmetric else DEFAULT_SCHEMES[order])
-    if scheme not in SCHEMES:
+    if order is not None and (isinstance(order, bool) or order not in DEFAULT_SCHEMES):
+        raise ValueError(f"compose: order must be one of {sorted(DEFAULT_SCHEMES)}, got "
+                         f"{order!r}")
+    if scheme is not None and scheme not in SCHEMES:
         raise ValueError(f"compose: unknown scheme {scheme!r}; valid schemes: {_scheme_list()}")
-    spec = SCHEMES[scheme]
     if not isinstance(base, AbstractIntegrator):
         raise ValueError(f"compose: base must be an integrator, got {base!r}")
     if not base.symmetric:
@@ -289,6 +278,12 @@ def compose(base: AbstractIntegrator, order: int | None = None, *, scheme: str |
             f"compose: {base.name} is not symmetric (Φ_{{-h}} ≠ Φ_h^{{-1}}); composition "
             "needs a symmetric base method (e.g. lgvi, hamel-cayley, hamel-exact, verlet, gl4)"
         )
+    if order is not None:
+        if base.order >= order:
+            raise ValueError(f"compose: {base.name} already has order {base.order}; order "
+                             f"{order} would not raise it")
+        scheme = default_scheme(order, base.order)
+    spec = SCHEMES[scheme]
     if base.order >= spec.order:
         raise ValueError(f"compose: {base.name} already has order {base.order}; scheme "
                          f"{scheme} (order {spec.order}) would not raise it")
