@@ -299,3 +299,7 @@ def test_bench_command_quick_run(tmp_path, capsys):
         assert car[f"ratio_{k}"] == pytest.approx(
             car["jax"][f"{k}_steps_per_s"] / n[f"{k}_steps_per_s"], rel=1e-12)
     assert "| car-pendulum | lgvi | scalar |" in printed
+    # Every result names the CPU it was measured on (the same command measures differently
+    # on another one), in bench.json and in the header of bench.md.
+    cpu = result["environment"]["cpu"]
+    assert cpu and f"CPU cores ({cpu}" in printed.splitlines()[2]

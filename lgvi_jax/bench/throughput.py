@@ -397,10 +397,27 @@ def _long_run_memory(n_steps: int, log) -> dict:
     return out
 
 
+def cpu_model() -> str:
+    """The CPU's name (Linux: ``model name`` of ``/proc/cpuinfo``; elsewhere
+    :func:`platform.processor`), ``"unknown"`` when neither says: the same command measures
+    differently on another CPU, so every result names the one it ran on."""
+    try:
+        with open("/proc/cpuinfo", encoding="ascii", errors="replace") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip() or "unknown"
+    except OSError:
+        pass
+    return platform.processor() or "unknown"
+
+
 def _environment() -> dict:
+    from lgvi_jax import _xla
+
     devices = jax.devices()
     return {"jax": jax.__version__, "python": platform.python_version(),
-            "machine": platform.machine(), "cpu_count": os.cpu_count(),
+            "machine": platform.machine(), "cpu": cpu_model(), "cpu_count": os.cpu_count(),
+            "avx512": _xla._wide_vectors(), "xla_settings": list(_xla.added()),
             "devices": [str(d) for d in devices], "platform": devices[0].platform,
             "device_kind": devices[0].device_kind}
 
@@ -492,7 +509,8 @@ def _markdown(r: dict) -> str:
         f"# Benchmark: h = {r['dt']}, {r['steps']} steps",
         "",
         f"{len(env['devices'])} {env['platform']} device(s) ({env['device_kind']}), "
-        f"{env['cpu_count']} CPU cores, jax {env['jax']}"
+        f"{env['cpu_count']} CPU cores ({env.get('cpu', 'unknown')}"
+        + (", AVX-512" if env.get("avx512") else "") + f"), jax {env['jax']}"
         + (f", Numba {numba['version']} with {numba['threads']} threads" if numba
            else ", no Numba baseline") + ". Best of up to "
         f"{r['repeats']} runs after compilation (fewer once a row's runs took "
