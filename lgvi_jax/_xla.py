@@ -75,16 +75,30 @@ def _backend_started() -> bool:
         return False
 
 
-def _wide_vectors() -> bool:
-    """Whether the CPU has AVX-512 (Linux's ``/proc/cpuinfo``; elsewhere: assumed not)."""
+def _cpuinfo(field: str) -> str | None:
+    """The value of ``field`` for the first CPU in Linux's ``/proc/cpuinfo`` (``None``
+    elsewhere, or when it has no such field)."""
     try:
         with open("/proc/cpuinfo", encoding="ascii", errors="replace") as f:
             for line in f:
-                if line.startswith("flags"):
-                    return "avx512f" in line.split()
+                if line.startswith(field):
+                    return line.split(":", 1)[1].strip() if ":" in line else ""
     except OSError:
         pass
-    return False
+    return None
+
+
+def _wide_vectors() -> bool:
+    """Whether the CPU has AVX-512 (Linux's ``/proc/cpuinfo``; elsewhere: assumed not)."""
+    return "avx512f" in (_cpuinfo("flags") or "").split()
+
+
+def cpu_model() -> str:
+    """The CPU's name (``model name`` of ``/proc/cpuinfo``; elsewhere
+    :func:`platform.processor`), ``"unknown"`` when neither says."""
+    import platform
+
+    return _cpuinfo("model name") or platform.processor() or "unknown"
 
 
 def flag() -> str:

@@ -397,26 +397,14 @@ def _long_run_memory(n_steps: int, log) -> dict:
     return out
 
 
-def cpu_model() -> str:
-    """The CPU's name (Linux: ``model name`` of ``/proc/cpuinfo``; elsewhere
-    :func:`platform.processor`), ``"unknown"`` when neither says: the same command measures
-    differently on another CPU, so every result names the one it ran on."""
-    try:
-        with open("/proc/cpuinfo", encoding="ascii", errors="replace") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip() or "unknown"
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
-
-
 def _environment() -> dict:
+    """What a result depends on beyond its options: versions, the CPU (the same command
+    measures differently on another one), the XLA settings and the devices."""
     from lgvi_jax import _xla
 
     devices = jax.devices()
     return {"jax": jax.__version__, "python": platform.python_version(),
-            "machine": platform.machine(), "cpu": cpu_model(), "cpu_count": os.cpu_count(),
+            "machine": platform.machine(), "cpu": _xla.cpu_model(), "cpu_count": os.cpu_count(),
             "avx512": _xla._wide_vectors(), "xla_settings": list(_xla.added()),
             "devices": [str(d) for d in devices], "platform": devices[0].platform,
             "device_kind": devices[0].device_kind}
