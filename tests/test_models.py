@@ -169,3 +169,18 @@ def test_oscillator_model_does_not_change_with_the_initial_condition():
     np.testing.assert_array_equal(state_b.q, [0.3])
     np.testing.assert_array_equal(state_b.p, [-2.0])
     assert float(state_a.q[0]) == 1.0
+
+
+def test_get_system_takes_a_name_or_a_system_and_names_what_it_got():
+    from lgvi_jax.sweep import sweep_method
+    from lgvi_jax.systems import get_system
+
+    spec = get_system("heavy-top")
+    assert get_system(spec) is spec
+    # A System where a name is expected works too (sweep_method resolves it the same way).
+    assert sweep_method(spec, "lgvi") == sweep_method("heavy-top", "lgvi")
+    with pytest.raises(TypeError, match=r"expected a system's name \(one of .*heavy-top.*\) "
+                                        r"or a System, got int"):
+        get_system(3)
+    with pytest.raises(ValueError, match="unknown system 'top'"):
+        get_system("top")

@@ -215,8 +215,14 @@ SYSTEMS: dict[str, System] = {
 }
 
 
-def get_system(name: str) -> System:
-    """The system called ``name`` (``ValueError`` listing the valid names otherwise)."""
+def get_system(name: str | System) -> System:
+    """The system called ``name`` (``ValueError`` listing the valid names otherwise); a
+    :class:`System` is returned as it is (``TypeError`` for anything else)."""
+    if isinstance(name, System):
+        return name
+    if not isinstance(name, str):
+        raise TypeError(f"system: expected a system's name (one of {', '.join(SYSTEMS)}) or "
+                        f"a System, got {type(name).__name__}")
     if name not in SYSTEMS:
         raise ValueError(f"unknown system {name!r}; valid systems: {', '.join(SYSTEMS)}")
     return SYSTEMS[name]
