@@ -236,9 +236,7 @@ def test_checkpointed_gradient_reuses_the_newton_solutions(scalar):
 
     model = lj.HeavyTop()
     state0 = model.default_state()
-    method = lj.LGVI()
-    if scalar:
-        method = with_scalar_newton(method)
+    method = with_scalar_newton(lj.LGVI(), scalar)
 
     def grad_fn(**kw):
         def loss(J):

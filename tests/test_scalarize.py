@@ -435,11 +435,16 @@ def _scalar(method):
                        dataclasses.replace(method.newton, scalar=True))
 
 
+def _arrays(method):
+    """The array engine, the reference of the scalar engine (the Lie-group VIs' default)."""
+    return with_scalar_newton(method, False)
+
+
 METHODS = {
-    "lgvi": LGVI(),
-    "hamel": HamelVI(),
-    "hamel-cayley": HamelVI(map="cayley"),
-    "hamel-exact": HamelVI(map="exp", variation="exact"),
+    "lgvi": _arrays(LGVI()),
+    "hamel": _arrays(HamelVI()),
+    "hamel-cayley": _arrays(HamelVI(map="cayley")),
+    "hamel-exact": _arrays(HamelVI(map="exp", variation="exact")),
 }
 
 
@@ -473,7 +478,7 @@ def test_scalar_engine_serves_every_model(model_fn):
     """Including a model defined in this test file (only energies and a state)."""
     model = model_fn()
     s0 = model.default_state()
-    method = HamelVI(map="exp", variation="exact")
+    method = _arrays(HamelVI(map="exp", variation="exact"))
     ref, _ = lj.final_state(model, method, s0, 1e-2, 30)
     got, code = lj.final_state(model, _scalar(method), s0, 1e-2, 30)
     assert int(code) == 0
@@ -511,7 +516,7 @@ def test_scalar_engine_gradients_equal_the_array_engine():
         traj = lj.simulate(m, method, s0, 2e-2, 10)
         return traj.state.mu[-1, 0] + traj.state.R[-1, 0, 2]
 
-    g_array = jax.grad(loss)(model.J, LGVI())
+    g_array = jax.grad(loss)(model.J, _arrays(LGVI()))
     g_scalar = jax.grad(loss)(model.J, _scalar(LGVI()))
     # both are the implicit-function-theorem derivatives of the same solutions
     np.testing.assert_allclose(g_scalar, g_array, rtol=1e-8, atol=1e-10)
@@ -525,7 +530,7 @@ def test_large_steps_converge_as_with_the_pivoted_array_solve():
 
     model = lj.CarPendulum()
     states = initial_conditions(model, model.default_state(), 64, 0.3, 1)
-    method = HamelVI()
+    method = _arrays(HamelVI())
     ok = [run_batch(model, m, states, 0.2, 30)["result"] == 0
           for m in (method, with_scalar_newton(method))]
     assert 0 < int(np.sum(ok[0])) < 64  # a regime where some fail
@@ -533,12 +538,21 @@ def test_large_steps_converge_as_with_the_pivoted_array_solve():
 
 
 def test_with_scalar_newton_selects_the_scalar_solve():
-    lgvi = with_scalar_newton(LGVI())
-    assert lgvi.newton.scalar and lgvi.newton.chord_steps == LGVI().newton.chord_steps
-    composed = with_scalar_newton(lj.compose(HamelVI(), order=4))
-    assert composed.base.newton.scalar
-    assert not with_scalar_newton(LGVI(chord_matrix="mass")).newton.scalar  # array only
+    # The Lie-group VIs solve on scalars by default; with_scalar_newton(m, False) on arrays.
+    assert LGVI().newton.scalar and HamelVI().newton.scalar
+    arrays = with_scalar_newton(LGVI(), False)
+    assert not arrays.newton.scalar and arrays.newton.chord_steps == LGVI().newton.chord_steps
+    assert with_scalar_newton(arrays) == LGVI()
+    composed = with_scalar_newton(lj.compose(HamelVI(), order=4), False)
+    assert not composed.base.newton.scalar and not composed._sub_step_method().newton.scalar
+    assert with_scalar_newton(composed).base.newton.scalar
+    # settings the scalar engine does not take: on arrays, and the flag says so
+    assert not with_scalar_newton(LGVI(chord_matrix="mass")).newton.scalar
+    assert not with_scalar_newton(lj.compose(LGVI(chord_matrix="mass"), order=4)).base.newton.scalar
+    assert not lj.LieGalerkinVI().newton.scalar  # its scalar program compiles for minutes
     assert with_scalar_newton(lj.RKMK4()) == lj.RKMK4()
+    with pytest.raises(TypeError, match="scalar must be True or False, got 'no'"):
+        with_scalar_newton(LGVI(), "no")
 
 
 def test_compositions_solve_on_scalars_and_equal_the_array_engine():
@@ -582,7 +596,7 @@ def test_the_sweep_equals_the_array_engine(tmp_path, capsys):
         rows = sorted(csv.DictReader(f), key=lambda r: int(r["index"]))
     model = lj.CarPendulum()
     states = initial_conditions(model, model.default_state(), 64, 0.01, 0)
-    ref = run_batch(model, HamelVI(), states, 0.01, 100)
+    ref = run_batch(model, _arrays(HamelVI()), states, 0.01, 100)
     assert len(rows) == 64
     for i, row in enumerate(rows):
         assert row["result"] == "0" and ref["result"][i] == 0

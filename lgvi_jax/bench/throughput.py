@@ -23,11 +23,12 @@ Four parts (``lgvi-jax bench --out DIR``; writes ``bench.json`` and ``bench.md``
    trajectory on one core and the batch on all cores. The heavy top has no Numba baseline.
 2. **Gradient.** ``jax.grad`` of a loss of the final state with respect to the inertia
    ``J``, through ``steps`` steps of one car-pendulum trajectory (``lgvi`` and ``hamel``;
-   the autodiff engine on arrays and on scalars), with the library's checkpointed rollout
-   (``simulate(..., checkpoint_every=K)``, K near the square root of the steps): forward
+   the autodiff engine on arrays and on scalars, the default), with the library's
+   checkpointed rollout (``simulate(..., checkpoint_every=K)``, K near the square root of
+   the steps): forward
    and gradient run times, their ratio, compile times.
 3. **Fit.** ``lgvi_jax.identify.fit`` with its defaults (``lgvi``, Levenberg–Marquardt, the
-   autodiff engine on arrays) recovering the inertia from noise-free synthetic
+   autodiff engine on scalars) recovering the inertia from noise-free synthetic
    observations (every 0.05 s over 5 s from the independent reference) at h = 5e-3: wall
    time and the relative error of the recovered inertia.
 4. **A sweep end to end** (``--parts sweep``, not in the default parts: it spawns fresh
@@ -250,9 +251,7 @@ def _gradient(methods, engines, steps: int, repeats: int, log) -> list[dict]:
     grads: dict[str, np.ndarray] = {}
     for name in methods:
         for engine in engines:
-            method = lj.RIGID_METHODS[name]()
-            if engine == "scalar":
-                method = with_scalar_newton(method)
+            method = with_scalar_newton(lj.RIGID_METHODS[name](), engine == "scalar")
 
             def loss(J, method=method):
                 # A loss of the final state: how far the pendulum and the cart moved.
@@ -550,7 +549,8 @@ def _markdown(r: dict) -> str:
             "through the library's rollout with checkpoints (`simulate(..., "
             "checkpoint_every=K)`; implicit-function-theorem derivatives of every Newton "
             "solve), against the same rollout forward. Engines: *array* (the autodiff "
-            "engine, the library's default) and *scalar* (`with_scalar_newton`).",
+            "engine on small arrays, `with_scalar_newton(method, False)`) and *scalar* "
+            "(on scalars, the default of the Lie-group VIs).",
             "",
             "| method | engine | K | forward (ms) | gradient (ms) | gradient / forward | "
             "compile (s) forward, gradient | gradient vs first engine (rel.) |",

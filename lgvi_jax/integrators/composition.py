@@ -99,8 +99,9 @@ class Composition(AbstractIntegrator):
             (its Newton settings with ``scalar=True``, :mod:`lgvi_jax.scalarize`): the same
             solutions to round-off, several times faster (``lgvi@4``: ~6x, ``lgvi@8``:
             ~3.5x for one trajectory, docs/engine.md). Used where the base's settings allow
-            it (the exact chord matrix; chord-then-Newton or plain Newton); ``False``: the
-            base's own solver.
+            it (the exact chord matrix; chord-then-Newton or plain Newton); ``False``: on
+            small arrays (:func:`~lgvi_jax.integrators.with_scalar_newton` with
+            ``scalar=False``).
 
     ``order`` is computed from ``gammas`` and ``base.order``
     (:func:`~lgvi_jax.integrators.order_conditions.composition_order`);
@@ -177,7 +178,7 @@ class Composition(AbstractIntegrator):
     # --- the step -----------------------------------------------------------------------
     def _sub_step_method(self) -> AbstractIntegrator:
         """The base with its solver as :attr:`scalar` says."""
-        return with_scalar_newton(self.base) if self.scalar else self.base
+        return with_scalar_newton(self.base, self.scalar)
 
     def step(self, model, state, dt):
         base = self._sub_step_method()
@@ -223,5 +224,6 @@ def _(method: Composition, chord_matrix: ChordMatrix | str) -> AbstractIntegrato
 
 
 @with_scalar_newton.register(Composition)
-def _(method: Composition) -> AbstractIntegrator:
-    return dataclasses.replace(method, base=with_scalar_newton(method.base))
+def _(method: Composition, scalar: bool = True) -> AbstractIntegrator:
+    return dataclasses.replace(method, base=with_scalar_newton(method.base, scalar),
+                               scalar=scalar)

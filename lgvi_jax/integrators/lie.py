@@ -180,10 +180,15 @@ class AbstractLieVI(AbstractIntegrator):
     """The discrete-Lagrangian engine; subclasses define the map, the discrete Lagrangian
     and the variation matrices."""
 
-    # Chord iterations first, full Newton from the initial guess as the fallback: the same
-    # solutions and robustness as Newton at about half the cost (experiments/
-    # bench_throughput.py); Newton() gives plain Newton.
-    newton: Newton = Newton(chord_steps=8)
+    #: The solver. Chord iterations first, full Newton from the initial guess as the
+    #: fallback: the same solutions and robustness as Newton at about half the cost;
+    #: ``Newton()`` gives plain Newton. On scalars (``scalar=True``, :mod:`lgvi_jax.scalarize`:
+    #: the same iterates as on arrays to the order of floating-point sums, several times
+    #: faster at a similar compile time, docs/engine.md); ``Newton(chord_steps=8)`` (or
+    #: :func:`~lgvi_jax.integrators.with_scalar_newton` with ``scalar=False``) solves on
+    #: small arrays, which the other solver settings need (``chord``, ``broyden``,
+    #: ``unroll``, the unrolled adjoint, the mass chord matrix).
+    newton: Newton = Newton(chord_steps=8, scalar=True)
     #: The chord matrix, a :class:`~lgvi_jax.options.ChordMatrix` (or its string).
     #: ``"exact"`` (default): the Jacobian at the initial guess
     #: (forward-over-reverse, ~7 residuals' cost). ``"mass"``: the continuous Legendre map's

@@ -64,6 +64,7 @@ Adv. Comput. Math. 41 (2015) 955–986 (Galerkin VIs, their order); J. E. Marsde
 
 from __future__ import annotations
 
+import dataclasses
 from typing import ClassVar
 
 import equinox as eqx
@@ -72,6 +73,7 @@ import jax.numpy as jnp
 
 from .. import so3
 from ..models.rigid import RigidState
+from ..newton import Newton
 from ..options import ChordMatrix, JacobianMode
 from ._tableaus import gauss_legendre, gauss_lobatto, lagrange_matrices
 from .lie import AbstractLieVI, _vee_AtB
@@ -90,6 +92,8 @@ class LieGalerkinVI(AbstractLieVI):
     """
 
     degree: int = eqx.field(static=True, default=2)
+    #: On small arrays (module docstring): its scalar program takes minutes to compile.
+    newton: Newton = Newton(chord_steps=8)
 
     symplectic: ClassVar[bool] = True
     jacobian_mode: ClassVar[JacobianMode] = JacobianMode.AUTO
@@ -177,7 +181,9 @@ class LieGalerkinVI(AbstractLieVI):
 
 
 @with_scalar_newton.register(LieGalerkinVI)
-def _(method: LieGalerkinVI) -> LieGalerkinVI:
+def _(method: LieGalerkinVI, scalar: bool = True) -> LieGalerkinVI:
     # Solved on small arrays: the scalar program of the (s + 1) quadrature points' second
     # derivatives is too large to compile in reasonable time (CHANGELOG, 2026-12-06).
-    return method
+    if scalar:
+        return method
+    return dataclasses.replace(method, newton=dataclasses.replace(method.newton, scalar=False))

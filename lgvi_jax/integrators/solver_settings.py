@@ -67,16 +67,27 @@ def _(method: AbstractLieVI, chord_matrix: ChordMatrix | str) -> AbstractLieVI:
 
 
 @functools.singledispatch
-def with_scalar_newton(method: AbstractIntegrator) -> AbstractIntegrator:
+def with_scalar_newton(method: AbstractIntegrator, scalar: bool = True) -> AbstractIntegrator:
     """``method`` with its Lie-group VI steps solved on scalars (``Newton(scalar=True)``,
-    :mod:`lgvi_jax.scalarize`), also inside a composition, where the chord matrix is the
-    exact one and the Newton settings allow it (chord-then-Newton or plain Newton, implicit
-    derivatives); any other method is returned unchanged. The same solutions to round-off."""
+    :mod:`lgvi_jax.scalarize`, the default of ``LGVI`` and ``HamelVI``), also inside a
+    composition, where the chord matrix is the exact one and the Newton settings allow it
+    (chord-then-Newton or plain Newton, implicit derivatives); with ``scalar=False`` on small
+    arrays (``Newton(scalar=False)``) instead. Any other method is returned unchanged. The
+    same solutions to round-off."""
+    _check_scalar(scalar)
     return method
 
 
+def _check_scalar(scalar) -> None:
+    if not isinstance(scalar, bool):
+        raise TypeError(f"with_scalar_newton: scalar must be True or False, got {scalar!r}")
+
+
 @with_scalar_newton.register(AbstractLieVI)
-def _(method: AbstractLieVI) -> AbstractLieVI:
-    if method.chord_matrix != ChordMatrix.EXACT or not method.newton.scalar_compatible:
-        return method
-    return dataclasses.replace(method, newton=dataclasses.replace(method.newton, scalar=True))
+def _(method: AbstractLieVI, scalar: bool = True) -> AbstractLieVI:
+    _check_scalar(scalar)
+    # Where the scalar engine does not apply the flag says so (the step runs on arrays).
+    scalar = scalar and (method.chord_matrix == ChordMatrix.EXACT
+                         and method.newton.scalar_compatible)
+    return dataclasses.replace(method, newton=dataclasses.replace(method.newton,
+                                                                  scalar=scalar))

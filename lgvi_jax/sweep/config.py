@@ -128,24 +128,22 @@ def sweep_method(system: str, name: str,
     ``--chord exact``). ``scalar=False``: the autodiff engine on arrays throughout (the
     same equations; for ``lgvi-jax bench``'s comparison). Raises ``ValueError`` for an
     unknown method."""
-    from ..integrators import Composition, with_chord_matrix, with_scalar_newton
+    from ..integrators import with_chord_matrix, with_scalar_newton
     from ..systems import get_system
 
     method = with_chord_matrix(get_system(system).method(name), chord_matrix)
-    if scalar:
-        method = with_scalar_newton(method)
-    elif isinstance(method, Composition):  # the array engine throughout
-        method = dataclasses.replace(method, scalar=False)
-    return method
+    return with_scalar_newton(method, scalar)
 
 
 def engine_name(method) -> str:
     """``"scalar"`` (the autodiff engine solving on scalars) or ``"general"`` (the autodiff
     engine on arrays): which engine runs ``method`` (also inside a composition)."""
     from ..integrators import Composition
+    from ..options import ChordMatrix
 
     base = method._sub_step_method() if isinstance(method, Composition) else method
     newton = getattr(base, "newton", None)
-    return "scalar" if getattr(newton, "scalar", False) else "general"
+    exact = getattr(base, "chord_matrix", ChordMatrix.EXACT) == ChordMatrix.EXACT
+    return "scalar" if getattr(newton, "scalar", False) and exact else "general"
 
 
