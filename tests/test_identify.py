@@ -614,3 +614,21 @@ def test_fit_command_writes_the_fit(clean_data, tmp_path, capsys):
     assert fit["method"] == "lgvi" and fit["optimizer"] == "gauss-newton" and fit["dt"] == 0.01
     assert fit["wall_time_s"] > 0 and fit["fitted"] == ["J"] and fit["init"] == {"m": [1.0]}
     assert fit["loss_final"] < 1e-2 * fit["loss_initial"]
+
+
+def test_a_method_named_for_a_short_fit_solves_on_arrays_and_for_a_long_one_on_scalars():
+    """make_loss (and so fit) resolves a method's name to the engine that fits faster for
+    the rollout's length (identify.FIT_SCALAR_MIN_STEPS); an integrator object is kept."""
+    from lgvi_jax.identify import FIT_SCALAR_MIN_STEPS, check_observations, make_loss
+
+    dt = 0.01
+    for n_steps, scalar in ((FIT_SCALAR_MIN_STEPS - 1, False), (FIT_SCALAR_MIN_STEPS, True)):
+        t = dt * np.arange(n_steps + 1)
+        data = {"t": t, "R": np.broadcast_to(np.eye(3), (t.size, 3, 3)), "R0": np.eye(3),
+                "omega0": np.zeros(3), "q": np.zeros((t.size, 2)), "q0": np.zeros(2),
+                "v0": np.zeros(2)}
+        obs = check_observations(data, dt)
+        _, _, problem = make_loss(obs, dt, method="lgvi")
+        assert problem.method.newton.scalar is scalar, n_steps
+        _, _, given = make_loss(obs, dt, method=lj.LGVI())
+        assert given.method == lj.LGVI()

@@ -28,8 +28,9 @@ Four parts (``lgvi-jax bench --out DIR``; writes ``bench.json`` and ``bench.md``
    the steps): forward
    and gradient run times, their ratio, compile times.
 3. **Fit.** ``lgvi_jax.identify.fit`` with its defaults (``lgvi``, Levenberg–Marquardt, the
-   autodiff engine on scalars) recovering the inertia from noise-free synthetic
-   observations (every 0.05 s over 5 s from the independent reference) at h = 5e-3: wall
+   engine its rollout's length picks: ``identify.FIT_SCALAR_MIN_STEPS``) recovering the
+   inertia from noise-free synthetic observations (every 0.05 s over 5 s from the
+   independent reference) at h = 5e-3: wall
    time and the relative error of the recovered inertia.
 4. **A sweep end to end** (``--parts sweep``, not in the default parts: it spawns fresh
    processes for a few minutes). ``lgvi-jax sweep SYSTEM --method hamel --dt 5e-3
@@ -308,7 +309,8 @@ def _fit(quick: bool, log) -> dict:
 
     out = {"dt": DT, "t_final": t_final, "observations": len(times),
            "method": result.method, "optimizer": result.optimizer,
-           "engine": engine_name(lj.RIGID_METHODS[result.method]()),
+           # the engine the fit ran on (make_loss resolves the method's name as fit does)
+           "engine": engine_name(identify.make_loss(obs, DT, names=("J",))[2].method),
            "wall_s": result.wall_time_s, "compile_s": result.compile_time_s,
            "iterations": result.iterations, "stopped": result.stopped,
            "start_rel_error_J_c": rel(centroidal_inertia(
