@@ -550,11 +550,13 @@ class _Problem(eqx.Module):
     checkpoint_every: int | None = eqx.field(static=True)
 
 
-def _problem(obs: Observations, model: AbstractRigidBodyModel, method: AbstractIntegrator,
-             dt: float, checkpoint_every: int | None) -> _Problem:
+def _problem(obs: Observations, model: AbstractRigidBodyModel,
+             method: str | AbstractIntegrator, dt: float,
+             checkpoint_every: int | None) -> _Problem:
     k = np.round(np.asarray(obs.t) / dt).astype(np.int64)
     stride = int(np.gcd.reduce(k[k > 0]))
     n_steps = int(k[-1])
+    method = _method(method, n_steps)
     if checkpoint_every is not None:
         # Round to a multiple of the stride that divides the number of steps.
         blocks = n_steps // stride
@@ -660,8 +662,7 @@ def make_loss(obs: Observations, dt: float, *, names: Sequence[str] = ("J",),
                          "observed initial velocity is used)")
     obs = _starting_obs(obs, base, omega0, v0)
     params0 = to_unconstrained(names, base, omega0=obs.omega0, v0=obs.v0)
-    n_steps = round(float(np.asarray(obs.t)[-1]) / dt)
-    return _loss, params0, _problem(obs, base, _method(method, n_steps), dt, checkpoint_every)
+    return _loss, params0, _problem(obs, base, method, dt, checkpoint_every)
 
 
 # ---------------------------------------------------------------------------------------

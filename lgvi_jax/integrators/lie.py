@@ -204,6 +204,12 @@ class AbstractLieVI(AbstractIntegrator):
     def __check_init__(self):
         ChordMatrix.parse(self.chord_matrix, type(self).__name__, "chord_matrix")
 
+    @property
+    def on_scalars(self) -> bool:
+        """Whether the steps are solved on scalars: ``Newton(scalar=True)`` with the exact
+        chord matrix (any other chord matrix runs on arrays)."""
+        return self.newton.scalar and self.chord_matrix == ChordMatrix.EXACT
+
     order: ClassVar[int] = 2
     symmetric: ClassVar[bool] = True
     implicit: ClassVar[bool] = True
@@ -328,7 +334,7 @@ class AbstractLieVI(AbstractIntegrator):
     def _velocities(self, model, state: RigidState):
         """The current velocities ``(ω, v)``, on scalars where the solve is."""
         args = (model, state.R, state.mu, state.q, state.p)
-        if self.newton.scalar and self.chord_matrix == ChordMatrix.EXACT:
+        if self.on_scalars:
             return scalarize(self._initial_guess)(*args)
         return self._initial_guess(*args)
 
@@ -344,8 +350,7 @@ class AbstractLieVI(AbstractIntegrator):
         R0, mu0, q0, p0 = state.R, state.mu, state.q, state.p
         h = jnp.asarray(dt, R0.dtype)
         args = (model, R0, mu0, q0, p0, h)
-        fast = self.newton.scalar and self.chord_matrix == ChordMatrix.EXACT
-        if fast:
+        if self.on_scalars:
             if guess is None:
                 guess = self.guess_from_velocities(self._velocities(model, state))
             solver = self.newton

@@ -139,11 +139,8 @@ def engine_name(method) -> str:
     """``"scalar"`` (the autodiff engine solving on scalars) or ``"general"`` (the autodiff
     engine on arrays): which engine runs ``method`` (also inside a composition)."""
     from ..integrators import Composition
-    from ..options import ChordMatrix
 
     base = method._sub_step_method() if isinstance(method, Composition) else method
-    newton = getattr(base, "newton", None)
-    exact = getattr(base, "chord_matrix", ChordMatrix.EXACT) == ChordMatrix.EXACT
-    return "scalar" if getattr(newton, "scalar", False) and exact else "general"
+    return "scalar" if getattr(base, "on_scalars", False) else "general"
 
 
