@@ -364,6 +364,30 @@ def test_dexp_inv_near_zero_and_pi():
     np.testing.assert_array_equal(jso3.dexp_inv(np.zeros(3)), EYE)
 
 
+def test_exp_minus_identity_derivatives_equal_those_of_exp():
+    """exp_minus_identity carries its differential in closed form (a custom JVP,
+    exp(w) hat(J_r(w) d)); exp is differentiated by autodiff through the Rodrigues formula.
+    exp(w) - I and exp(w) have the same derivatives: first and second, forward and reverse,
+    on both sides of the Taylor switch, near pi and beyond."""
+    w = np.concatenate([SPECIAL_W, rotation_vectors(15, max_angle=2 * np.pi - 0.5)])
+
+    @jax.jit
+    @jax.vmap
+    def derivatives(w):
+        return (jax.jacfwd(so3.exp)(w), jax.jacfwd(so3.exp_minus_identity)(w),
+                jax.jacrev(so3.exp_minus_identity)(w),
+                jax.jacfwd(jax.jacfwd(so3.exp))(w),
+                jax.jacfwd(jax.jacrev(so3.exp_minus_identity))(w))
+
+    J, J_fwd, J_rev, H, H_new = (np.asarray(x) for x in derivatives(w))
+    # Entries O(1), each a few dozen roundings (~1e-15); the coefficient functions' closed
+    # forms just above theta = 0.1 lose ~eps/theta^2 to cancellation (their derivatives
+    # ~eps/theta^2 more, ~1e-14 in the second derivatives): 10x margins.
+    np.testing.assert_allclose(J_fwd, J, rtol=0, atol=1e-14)
+    np.testing.assert_allclose(J_rev, J, rtol=0, atol=1e-14)
+    np.testing.assert_allclose(H_new, H, rtol=0, atol=1e-13)
+
+
 def test_differential_conventions_by_finite_differences():
     """Independent of autodiff: tau(w + h d) - tau(w - h d) ~ 2 h tau(w) hat(D(w) d)."""
     w = np.array([0.4, -1.1, 0.7])
@@ -389,6 +413,7 @@ M3 = _weights(21, (3,))
 
 SCALAR_FNS = {
     "exp": lambda w: jnp.sum(M33 * so3.exp(w)),
+    "exp_minus_identity": lambda w: jnp.sum(M33 * so3.exp_minus_identity(w)),
     "cayley": lambda w: jnp.sum(M33 * so3.cayley(w)),
     "dexp": lambda w: jnp.sum(M33 * so3.dexp(w)),
     "dexp_inv": lambda w: jnp.sum(M33 * so3.dexp_inv(w)),
@@ -431,7 +456,7 @@ def test_gradients_finite_and_match_finite_differences(name):
     _check_gradient(SCALAR_FNS[name], SPECIAL_W, FD_W)
 
 
-@pytest.mark.parametrize("name", ["exp", "dexp_inv"])
+@pytest.mark.parametrize("name", ["exp", "exp_minus_identity", "dexp_inv"])
 def test_second_derivatives_finite(name):
     # Newton iterations of the integrators differentiate residuals built from exp/dexp_inv,
     # so their Jacobians must be differentiable too (also through the Taylor branch).

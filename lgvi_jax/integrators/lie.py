@@ -443,8 +443,8 @@ class HamelVI(AbstractLieVI):
 
     map: HamelMap = eqx.field(default=HamelMap.EXP, converter=HamelMap.coerce)
     variation: Variation = eqx.field(default=Variation.PAPER, converter=Variation.coerce)
-    #: Forward for every map and variation (car-pendulum ``hamel`` 1239 against 1702
-    #: operations, heavy top ``hamel`` 259 against 476; tests/test_scalarize.py).
+    #: Forward for every map and variation (car-pendulum ``hamel`` 1018 against 1277
+    #: operations, heavy top ``hamel`` 259 against 372; tests/test_scalarize.py).
     jacobian_mode: ClassVar[JacobianMode] = JacobianMode.FORWARD
 
     def __check_init__(self):
