@@ -297,6 +297,12 @@ def exp(w: Any) -> jax.Array:
     return _eye_like(w) + a * hat(w) + b * _hat_sq(w)
 
 
+def _rodrigues(w: jax.Array, a: jax.Array, b: jax.Array) -> jax.Array:
+    r""":math:`a\hat w + b\hat w^2` for coefficients ``a``, ``b`` of shape ``w.shape[:-1]``:
+    :math:`\exp(w) - I` with :math:`a = \sin\theta/\theta`, :math:`b = (1-\cos\theta)/\theta^2`."""
+    return a[..., None, None] * hat(w) + b[..., None, None] * _hat_sq(w)
+
+
 def exp_minus_identity(w: Any) -> jax.Array:
     r""":math:`\exp(w) - I` computed without cancellation, ``(..., 3) -> (..., 3, 3)``.
 
@@ -311,9 +317,7 @@ def exp_minus_identity(w: Any) -> jax.Array:
 
 @jax.custom_jvp
 def _exp_minus_identity(w: jax.Array) -> jax.Array:
-    t2 = _theta_sq(w)
-    a, b = (c[..., None, None] for c in _coefficients(t2, _SINC, _ONE_MINUS_COS))
-    return a * hat(w) + b * _hat_sq(w)
+    return _rodrigues(w, *_coefficients(_theta_sq(w), _SINC, _ONE_MINUS_COS))
 
 
 @_exp_minus_identity.defjvp
@@ -325,7 +329,7 @@ def _exp_minus_identity_jvp(primals, tangents):
     built from it); differentiable again (second derivatives through ``b`` and ``c``)."""
     (w,), (dw,) = primals, tangents
     a, b, c = _coefficients(_theta_sq(w), _SINC, _ONE_MINUS_COS, _T_MINUS_SIN)
-    E = a[..., None, None] * hat(w) + b[..., None, None] * _hat_sq(w)
+    E = _rodrigues(w, a, b)
     w_x_dw = jnp.cross(w, dw)
     v = dw - b[..., None] * w_x_dw + c[..., None] * jnp.cross(w, w_x_dw)
     V = hat(v)
