@@ -260,6 +260,42 @@ def test_accelerator_bench_reports_the_sweeps_work(tmp_path, capsys):
     assert json.loads(capsys.readouterr().out.splitlines()[-1]) == row
 
 
+def test_bench_timer_alternates_the_sides_of_a_ratio():
+    """``_timed_alternating`` on a fake clock: the sides run in turn (a, b, a, b, ...), a
+    side stops once it ran ``repeats`` times and ``min_s`` in all or ran ``budget_s`` in
+    all (then the other goes on alone), and each reports its fastest run, its run count
+    and its first result."""
+    from lgvi_jax.bench.throughput import _timed_alternating
+
+    now = [0.0]
+    calls: list[str] = []
+
+    def side(name, durations):
+        it = iter(durations)
+
+        def run():
+            calls.append(name)
+            now[0] += next(it)
+            return f"{name}{len(calls)}"
+        return run
+
+    # a needs 3 runs and 1 s in all: 7 runs (1.025 s); b has 1.35 s after its 3 runs.
+    a = side("a", [0.1, 0.3] + [0.125] * 20)
+    b = side("b", [0.5, 0.4, 0.45] + [0.4] * 20)
+    (best_a, runs_a, first_a), (best_b, runs_b, first_b) = _timed_alternating(
+        [a, b], repeats=3, budget_s=20.0, min_s=1.0, clock=lambda: now[0])
+    assert calls[:6] == ["a", "b"] * 3 and set(calls[6:]) == {"a"}
+    assert (runs_a, runs_b) == (7, 3) and len(calls) == 10
+    assert best_a == pytest.approx(0.1) and best_b == pytest.approx(0.4)
+    assert (first_a, first_b) == ("a1", "b2")
+    # The budget ends a slow side after one run; with no minimum time, `repeats` runs.
+    calls.clear()
+    slow, fast = side("s", [30.0] * 3), side("f", [0.01] * 10)
+    (_, runs_s, _), (_, runs_f, _) = _timed_alternating(
+        [slow, fast], repeats=3, budget_s=20.0, min_s=0.0, clock=lambda: now[0])
+    assert (runs_s, runs_f) == (1, 3) and calls == ["s", "f", "f", "f"]
+
+
 def test_bench_command_quick_run(tmp_path, capsys):
     """``lgvi-jax bench --quick`` end to end on one method and one system, few steps and a
     small batch, its throughput part (Numba's compilation included): on the car-pendulum

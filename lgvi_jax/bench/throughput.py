@@ -42,11 +42,14 @@ Four parts (``lgvi-jax bench --out DIR``; writes ``bench.json`` and ``bench.md``
 5. **Memory of long runs.** ``lgvi-jax simulate`` for 10^6 steps with ``--save-every
    1000`` (and 10^5 for comparison) in child processes: their peak resident memory.
 
-Times are the best of up to ``repeats`` runs after compilation, fewer when the runs of a
-row already took :data:`TIME_BUDGET_S` (a batch of ``lgvi@8`` runs for minutes); the first
-run counts. Compile times are ahead of time (``lower().compile()``) and cold: ``lgvi-jax
-bench`` leaves the command line's persistent compilation cache off. The benchmark reports
-numbers and asserts nothing about them.
+Times are the best of at least ``repeats`` runs after compilation that took at least
+:data:`MIN_TIME_S` in all (one trajectory: dozens of runs), fewer when a side's runs
+already took :data:`TIME_BUDGET_S` (a batch of ``lgvi@8`` runs for minutes); the first
+run counts. What a ratio compares is timed alternately, one run of each side in turn
+(JAX and Numba; the forward run and the gradient), so that a slow stretch of a shared
+machine weighs on both sides alike. Compile times are ahead of time
+(``lower().compile()``) and cold: ``lgvi-jax bench`` leaves the command line's persistent
+compilation cache off. The benchmark reports numbers and asserts nothing about them.
 
 Run: ``lgvi-jax bench --out results/bench`` (or ``python lgvi_jax/bench/throughput.py``).
 """
@@ -99,6 +102,11 @@ DT = 5e-3
 PERTURB, SEED = 0.01, 0
 #: Stop repeating a timed run once its runs took this long in all (seconds).
 TIME_BUDGET_S = 20.0
+#: Repeat a timed run until its runs took at least this long in all (seconds), beyond the
+#: ``repeats`` runs: one trajectory of 10^4 steps runs in milliseconds, and three such runs
+#: fit inside one slow stretch of a shared machine (measured: stretches of seconds in which
+#: one side ran 35 % slower).
+MIN_TIME_S = 1.0
 #: The fit: the inertia about the mass centre of the synthetic truth (the paper's is
 #: 0.04 I, the fit's start), observations every 0.05 s over 5 s (1 s with --quick).
 FIT_J_C_TRUE = ((0.03, 0.0, 0.0), (0.0, 0.05, 0.0), (0.0, 0.0, 0.04))
@@ -124,19 +132,38 @@ def _rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def _timed(fn: Callable[[], object], repeats: int, budget_s: float = TIME_BUDGET_S):
-    """``(best seconds, runs, first result)``: up to ``repeats`` runs of ``fn``, fewer once
-    they took ``budget_s`` in all (at least one)."""
-    times, first = [], None
-    while len(times) < repeats:
-        start = time.perf_counter()
-        out = jax.block_until_ready(fn())
-        times.append(time.perf_counter() - start)
-        if first is None:
-            first = out
-        if sum(times) >= budget_s:
-            break
-    return min(times), len(times), first
+def _timed(fn: Callable[[], object], repeats: int, budget_s: float = TIME_BUDGET_S,
+           min_s: float = MIN_TIME_S):
+    """``(best seconds, runs, first result)`` of ``fn`` (:func:`_timed_alternating`)."""
+    return _timed_alternating([fn], repeats, budget_s, min_s)[0]
+
+
+def _timed_alternating(fns: Sequence[Callable[[], object]], repeats: int,
+                       budget_s: float = TIME_BUDGET_S, min_s: float = MIN_TIME_S,
+                       clock: Callable[[], float] = time.perf_counter) -> list[tuple]:
+    """For each of ``fns``, ``(best seconds, runs, first result)``. Their runs alternate
+    (one run of each in turn), so that a slow stretch of a shared machine falls on all of
+    them alike and their ratio keeps its meaning; each is repeated until it has run
+    ``repeats`` times and for ``min_s`` in all, or for ``budget_s`` in all (at least once),
+    the others alternating on until they are done too."""
+    times: list[list[float]] = [[] for _ in fns]
+    firsts: list = [None] * len(fns)
+
+    def done(i: int) -> bool:
+        total = sum(times[i])
+        return bool(times[i]) and (total >= budget_s
+                                   or (len(times[i]) >= repeats and total >= min_s))
+
+    while not all(done(i) for i in range(len(fns))):
+        for i, fn in enumerate(fns):
+            if done(i):
+                continue
+            start = clock()
+            out = jax.block_until_ready(fn())
+            times[i].append(clock() - start)
+            if firsts[i] is None:
+                firsts[i] = out
+    return [(min(t), len(t), first) for t, first in zip(times, firsts, strict=True)]
 
 
 def _summary(res: dict, prefix: str) -> dict:
@@ -149,9 +176,17 @@ def _summary(res: dict, prefix: str) -> dict:
             f"{prefix}_newton_mean": float(np.mean(its)) if its.size else math.nan}
 
 
-def _bench_jax(model, method, s0, steps: int, batch: int, repeats: int) -> dict:
+def _bench_row(model, method, s0, steps: int, batch: int, repeats: int, min_s: float,
+               nb=None, name: str | None = None) -> tuple[dict, dict | None]:
+    """The JAX rollout of ``method`` (one trajectory on one device, and the batch) and,
+    with ``nb``, the Numba baseline of the method ``name`` (one trajectory on one core, the
+    batch on all): ``(jax, numba)`` rows. Each side's runs alternate with the other's
+    (:func:`_timed_alternating`)."""
     out: dict = {"engine": engine_name(method)}
-    for label, n, devices in (("single", 1, jax.devices()[:1]), ("batch", batch, None)):
+    base: dict | None = None if nb is None else {}
+    params = None if nb is None else nb.params_from_model(model)
+    for label, n, devices, threads in (("single", 1, jax.devices()[:1], 1),
+                                       ("batch", batch, None, None)):
         states = initial_conditions(model, s0, n, PERTURB, SEED)
         fn, args = batch_arguments(model, method, states, DT, steps, kind="metrics",
                                    devices=devices)
@@ -159,10 +194,21 @@ def _bench_jax(model, method, s0, steps: int, batch: int, repeats: int) -> dict:
         compiled = fn.lower(*args).compile()
         out[f"{label}_compile_s"] = time.perf_counter() - start
         dyn = args[:1] + args[2:]  # the static argument is baked into the compiled program
-        best, runs, res = _timed(lambda compiled=compiled, dyn=dyn: compiled(*dyn), repeats)
+        fns = [lambda compiled=compiled, dyn=dyn: compiled(*dyn)]
+        if nb is not None:
+            arrays = _numpy_states(states)
+            fns.append(lambda arrays=arrays, threads=threads: nb.sweep_metrics(
+                name, *arrays, DT, steps, params, threads=threads))
+        timed = _timed_alternating(fns, repeats, min_s=min_s)
+        best, runs, res = timed[0]
         out[f"{label}_steps_per_s"] = n * steps / best
         out[f"{label}_runs"] = runs
         out.update(_summary(res, label))
+        if nb is not None:
+            nb_best, nb_runs, (nb_res, _) = timed[1]
+            base[f"{label}_steps_per_s"] = n * steps / nb_best
+            base[f"{label}_runs"] = nb_runs
+            base.update(_summary(nb_res, label))
         if label == "batch":
             out["batch_wall_s"] = best
             try:
@@ -173,7 +219,7 @@ def _bench_jax(model, method, s0, steps: int, batch: int, repeats: int) -> dict:
             except Exception:  # memory_analysis is not available on every backend
                 out["batch_xla_memory_mb"] = math.nan
     out["compile_s"] = out["single_compile_s"]  # (the names of earlier bench.json files)
-    return out
+    return out, base
 
 
 def _numpy_states(states) -> list[np.ndarray]:
@@ -181,23 +227,9 @@ def _numpy_states(states) -> list[np.ndarray]:
                                                          states.p)]
 
 
-def _bench_numba(nb, name: str, model, s0, steps: int, batch: int, repeats: int) -> dict:
-    params = nb.params_from_model(model)
-    out: dict = {}
-    for label, n, threads in (("single", 1, 1), ("batch", batch, None)):
-        arrays = _numpy_states(initial_conditions(model, s0, n, PERTURB, SEED))
-        best, runs, (res, _) = _timed(
-            lambda arrays=arrays, threads=threads: nb.sweep_metrics(
-                name, *arrays, DT, steps, params, threads=threads), repeats)
-        out[f"{label}_steps_per_s"] = n * steps / best
-        out[f"{label}_runs"] = runs
-        out.update(_summary(res, label))
-    return out
-
-
-def _throughput(systems, methods, engines, steps, batch, repeats, nb, log) -> list[dict]:
+def _throughput(systems, methods, engines, steps, batch, repeats, min_s, nb,
+                log) -> list[dict]:
     rows: list[dict] = []
-    numba_rows: dict[str, dict] = {}
     for system in systems:
         spec = lj.systems.get_system(system)
         model, s0 = spec.build()
@@ -209,16 +241,13 @@ def _throughput(systems, methods, engines, steps, batch, repeats, nb, log) -> li
                 if (name, used) in seen:
                     continue
                 seen.add((name, used))
+                has_base = (nb is not None and system == "car-pendulum"
+                            and name.partition("@")[0] in nb.METHODS)
+                jax_row, numba_row = _bench_row(model, method, s0, steps, batch, repeats,
+                                                min_s, nb if has_base else None, name)
                 row = {"system": system, "method": name, "engine": used,
-                       "engine_option": engine,
-                       "jax": _bench_jax(model, method, s0, steps, batch, repeats),
-                       "numba": None}
-                base = name.partition("@")[0]
-                if nb is not None and system == "car-pendulum" and base in nb.METHODS:
-                    if name not in numba_rows:  # one baseline per method, for every engine
-                        numba_rows[name] = _bench_numba(nb, name, model, s0, steps, batch,
-                                                        repeats)
-                    row["numba"] = numba_rows[name]
+                       "engine_option": engine, "jax": jax_row, "numba": numba_row}
+                if numba_row is not None:
                     for k in ("single", "batch"):
                         row[f"ratio_{k}"] = (row["jax"][f"{k}_steps_per_s"]
                                              / row["numba"][f"{k}_steps_per_s"])
@@ -242,7 +271,7 @@ def _segment(n_steps: int) -> int:
     return max(k for k in range(1, math.isqrt(n_steps) + 1) if n_steps % k == 0)
 
 
-def _gradient(methods, engines, steps: int, repeats: int, log) -> list[dict]:
+def _gradient(methods, engines, steps: int, repeats: int, min_s: float, log) -> list[dict]:
     from lgvi_jax.integrators import with_scalar_newton
 
     model = lj.CarPendulum()
@@ -264,11 +293,16 @@ def _gradient(methods, engines, steps: int, repeats: int, log) -> list[dict]:
 
             row: dict = {"method": name, "engine": engine, "steps": steps,
                          "checkpoint_every": K}
-            for label, fn in (("forward", loss), ("gradient", jax.grad(loss, has_aux=True))):
+            labels = ("forward", "gradient")
+            runs_of = []
+            for label, fn in zip(labels, (loss, jax.grad(loss, has_aux=True)), strict=True):
                 start = time.perf_counter()
                 compiled = jax.jit(fn).lower(model.J).compile()
                 row[f"{label}_compile_s"] = time.perf_counter() - start
-                best, runs, (value, code) = _timed(lambda c=compiled: c(model.J), repeats)
+                runs_of.append(lambda c=compiled: c(model.J))
+            # Alternated, so that the ratio compares runs under the same load.
+            for label, (best, runs, (value, code)) in zip(
+                    labels, _timed_alternating(runs_of, repeats, min_s=min_s), strict=True):
                 row[f"{label}_s"] = best
                 row[f"{label}_runs"] = runs
                 row[f"{label}_failed"] = int(code) != 0
@@ -446,6 +480,7 @@ def run(out_dir: Path | str, quick: bool = False, log: Callable = print, *,
     steps = steps or (1000 if quick else 10_000)
     batch = batch or (64 if quick else 1024)
     repeats = 2 if quick else 3
+    min_s = 0.0 if quick else MIN_TIME_S
     methods = tuple(methods or (QUICK_METHODS if quick else METHODS))
     engines = tuple(engines or (QUICK_ENGINES if quick else ENGINES))
     parts = tuple(parts or (QUICK_PARTS if quick else DEFAULT_PARTS))
@@ -453,7 +488,7 @@ def run(out_dir: Path | str, quick: bool = False, log: Callable = print, *,
     env = _environment()
     results: dict = {"quick": quick, "dt": DT, "steps": steps, "batch": batch,
                      "perturb": PERTURB, "seed": SEED, "repeats": repeats,
-                     "time_budget_s": TIME_BUDGET_S, "systems": list(systems),
+                     "min_time_s": min_s, "time_budget_s": TIME_BUDGET_S, "systems": list(systems),
                      "methods": list(methods), "engines": list(engines),
                      "parts": list(parts), "numba": None, "environment": env}
     if "throughput" in parts:
@@ -462,12 +497,13 @@ def run(out_dir: Path | str, quick: bool = False, log: Callable = print, *,
         log(f"throughput: h = {DT}, {steps} steps, batch {batch}, metrics every step, on "
             f"{len(env['devices'])} {env['platform']} device(s)")
         results["throughput"] = _throughput(systems, methods, engines, steps, batch, repeats,
-                                            nb, log)
+                                            min_s, nb, log)
     if "gradient" in parts:
         grad_methods = tuple(m for m in GRAD_METHODS if m in methods) or GRAD_METHODS[:1]
         grad_engines = GRAD_ENGINES[:1] if quick else GRAD_ENGINES
         log(f"gradient: jax.grad through {steps} steps of one car-pendulum trajectory")
-        results["gradient"] = _gradient(grad_methods, grad_engines, steps, repeats, log)
+        results["gradient"] = _gradient(grad_methods, grad_engines, steps, repeats, min_s,
+                                        log)
     if "fit" in parts:
         log("fit: the inertia from noise-free synthetic observations")
         results["fit"] = _fit(quick, log)
@@ -501,9 +537,10 @@ def _markdown(r: dict) -> str:
         f"{env['cpu_count']} CPU cores ({env.get('cpu', 'unknown')}"
         + (", AVX-512" if env.get("avx512") else "") + f"), jax {env['jax']}"
         + (f", Numba {numba['version']} with {numba['threads']} threads" if numba
-           else ", no Numba baseline") + ". Best of up to "
-        f"{r['repeats']} runs after compilation (fewer once a row's runs took "
-        f"{r.get('time_budget_s', TIME_BUDGET_S):g} s); compile times cold (ahead of time, "
+           else ", no Numba baseline") + ". Best of at least "
+        f"{r['repeats']} runs after compilation and {r.get('min_time_s', 0.0):g} s of runs "
+        f"(fewer once a side's runs took {r.get('time_budget_s', TIME_BUDGET_S):g} s), the "
+        "sides of a ratio alternated run by run; compile times cold (ahead of time, "
         "no persistent cache).",
     ]
     if "throughput" in r:
