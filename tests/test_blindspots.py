@@ -320,8 +320,13 @@ def test_bench_command_quick_run(tmp_path, capsys):
     assert "long_run" not in result and "fit" not in result and "gradient" not in result
     rows = {(r["system"], r["method"], r["engine"]): r for r in result["throughput"]}
     assert set(rows) == {("car-pendulum", "lgvi", "scalar")}
+    assert result["single_compiles"] == 2
     for row in rows.values():
         j = row["jax"]
+        # One trajectory compiled twice: the speed reported is one of the two (the median,
+        # here the slower), each listed in increasing order.
+        each = j["single_steps_per_s_each"]
+        assert len(each) == 2 and each[0] <= each[1] and j["single_steps_per_s"] == each[0]
         assert j["single_failed"] == 0 and j["batch_failed"] == 0
         assert j["single_steps_per_s"] > 0 and j["batch_steps_per_s"] > 0
         assert 0 < j["batch_energy_error_max"] < 1e-3 and j["batch_newton_mean"] >= 1
