@@ -214,12 +214,11 @@ def _bench_row(model, method, s0, steps: int, batch: int, repeats: int, min_s: f
                 name, *arrays, DT, steps, params, threads=threads))
         timed = _timed_alternating(fns, repeats, min_s=min_s)
         # The median over the compilations (one trajectory: a lottery per compilation,
-        # SINGLE_COMPILES); each compilation's speed in `<label>_steps_per_s_each`.
-        each = sorted(n * steps / best for best, _, _ in timed[:n_jax])
-        order = sorted(range(n_jax), key=lambda i: timed[i][0])
-        best, runs, res = timed[order[n_jax // 2]]
+        # SINGLE_COMPILES); each compilation's speed, slowest first, in `..._each`.
+        ranked = sorted(timed[:n_jax], key=lambda t: t[0], reverse=True)
+        best, runs, res = ranked[(n_jax - 1) // 2]
         out[f"{label}_steps_per_s"] = n * steps / best
-        out[f"{label}_steps_per_s_each"] = each
+        out[f"{label}_steps_per_s_each"] = [n * steps / t for t, _, _ in ranked]
         out[f"{label}_runs"] = runs
         out.update(_summary(res, label))
         if nb is not None:
