@@ -88,7 +88,7 @@ import numpy as np
 import optax
 import scipy.optimize
 
-from . import _cache, so3
+from . import _cache, _gc, so3
 from .inertia import centroidal_inertia, inertia_from_params, params_from_inertia, pivot_inertia
 from .integrators import RIGID_METHODS, AbstractIntegrator, with_scalar_newton
 from .models import AbstractRigidBodyModel, CarPendulum, RigidState
@@ -768,11 +768,13 @@ def _optimizer(name: str, lr: float | None):
 
 
 @eqx.filter_jit
+@_gc.paused()  # while tracing (lgvi_jax._gc)
 def _value_and_grad(params, problem):
     return jax.value_and_grad(_loss)(params, problem)
 
 
 @eqx.filter_jit
+@_gc.paused()  # while tracing (lgvi_jax._gc)
 def _residuals_and_jacobian(params, problem):
     """``(r, ∂r/∂θ)`` with respect to the flattened parameters, one forward-mode pass (the
     primal rides along with the tangents)."""
@@ -898,6 +900,7 @@ def _lbfgs_direction(grad, memory, x):
 
 
 @eqx.filter_jit
+@_gc.paused()  # while tracing (lgvi_jax._gc)
 def _adam_step(opt, params, state, problem):
     value, grad = jax.value_and_grad(_loss)(params, problem)
     updates, state = opt.update(grad, state, params)

@@ -28,6 +28,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from . import _gc
 from .trajectory import RESULTS
 
 __all__ = ["Carry", "advance", "start"]
@@ -116,7 +117,14 @@ def advance(model, method, dt, carry: Carry, n_steps: int | jax.Array,
     ``loop``: ``"scan"`` (``n_steps`` a Python int; reverse-mode differentiable), ``"fori"``
     (``n_steps`` may be traced) or ``"while"`` (also stops before a step once ``until(carry,
     acc)`` is true).
+
+    Python's garbage collector is paused while the loop is traced (:mod:`lgvi_jax._gc`).
     """
+    with _gc.paused():
+        return _advance(model, method, dt, carry, n_steps, observe, acc, loop, until)
+
+
+def _advance(model, method, dt, carry, n_steps, observe, acc, loop, until):
     def body(c_acc):
         c, a = c_acc
         c = _step(model, method, dt, c)

@@ -88,3 +88,62 @@ def test_a_failure_keeps_its_step_and_the_later_states_are_nan(setup):
 def test_bad_loop_is_named():
     with pytest.raises(ValueError, match="loop must be"):
         rollout.advance(None, None, DT, None, 1, loop="unroll")
+
+
+def test_the_collector_is_paused_while_tracing_and_restored_after(setup):
+    """``advance`` pauses Python's garbage collector while it traces the loop (the step and
+    the observer run with it off) and gives back the caller's setting afterwards, also when
+    the trace raises, from nested pauses and from several threads at once."""
+    import gc
+    import threading
+
+    from lgvi_jax import _gc
+
+    model, method, s0 = setup
+    seen = []
+
+    def observe(acc, c):
+        seen.append(gc.isenabled())
+        return acc
+
+    assert gc.isenabled()
+    carry = rollout.start(model, method, s0, DT)
+    jax.jit(lambda c: rollout.advance(model, method, DT, c, 3, observe, 0.0))(carry)
+    assert seen and not any(seen) and gc.isenabled()
+
+    def fail(acc, c):
+        raise RuntimeError("observer failed")
+
+    with pytest.raises(RuntimeError, match="observer failed"):
+        rollout.advance(model, method, DT, carry, 3, fail, 0.0, loop="scan")
+    assert gc.isenabled()
+
+    gc.disable()  # the caller's choice is kept
+    try:
+        with _gc.paused():
+            pass
+        assert not gc.isenabled()
+    finally:
+        gc.enable()
+
+    # Nested and concurrent pauses: off until the last one ends.
+    inside = threading.Barrier(3)
+    leave = threading.Event()
+
+    def hold():
+        with _gc.paused():
+            inside.wait()
+            leave.wait()
+
+    threads = [threading.Thread(target=hold) for _ in range(2)]
+    for t in threads:
+        t.start()
+    with _gc.paused():
+        inside.wait()
+        with _gc.paused():
+            assert not gc.isenabled()
+    assert not gc.isenabled()  # the threads' pauses are still active
+    leave.set()
+    for t in threads:
+        t.join()
+    assert gc.isenabled()
