@@ -1,6 +1,7 @@
 """The one rollout loop (lgvi_jax.rollout): its three loop forms agree, a run split in two
 equals the whole run, observers fold what simulate saves, ``until`` stops at the first step
-that meets it, and a failure is kept with its step while later states are NaN."""
+that meets it, a failure is kept with its step while later states are NaN, and Python's
+garbage collector is paused while a loop is traced."""
 
 import jax
 import jax.numpy as jnp
