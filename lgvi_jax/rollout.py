@@ -107,6 +107,7 @@ def _step(model, method, dt, c: Carry) -> Carry:
     )
 
 
+@_gc.paused()  # while the loop is traced (lgvi_jax._gc)
 def advance(model, method, dt, carry: Carry, n_steps: int | jax.Array,
             observe: Callable[[Any, Carry], Any] | None = None, acc: Any = None, *,
             loop: str = "fori",
@@ -120,11 +121,6 @@ def advance(model, method, dt, carry: Carry, n_steps: int | jax.Array,
 
     Python's garbage collector is paused while the loop is traced (:mod:`lgvi_jax._gc`).
     """
-    with _gc.paused():
-        return _advance(model, method, dt, carry, n_steps, observe, acc, loop, until)
-
-
-def _advance(model, method, dt, carry, n_steps, observe, acc, loop, until):
     def body(c_acc):
         c, a = c_acc
         c = _step(model, method, dt, c)
