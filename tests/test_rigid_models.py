@@ -255,8 +255,9 @@ def test_state_takes_each_initial_condition():
     top = HeavyTop()
     s = top.state(R0=np.eye(3), omega0=(0.0, 0.0, 2.0))
     np.testing.assert_array_equal(s.R, np.eye(3))
+    # The Legendre map by autodiff: a few roundings of J's entries (measured 1.7e-16).
     np.testing.assert_allclose(s.mu, np.asarray(top.J) @ np.array([0.0, 0.0, 2.0]),
-                               rtol=1e-15)
+                               rtol=1e-14)
 
 
 @pytest.mark.parametrize("name", list(RIGID_MODELS))

@@ -252,8 +252,9 @@ def test_log_exp_roundtrip():
     )
     # The near-pi branch reads the axis from the symmetric part of R, so the error stays at
     # round-off level; the textbook formula theta/(2 sin theta) vee(R - R^T) would amplify
-    # round-off by 1/sin(theta) ~ 1e6 at pi - 1e-6.
-    np.testing.assert_allclose(jso3.log(jso3.exp(w)), w, rtol=0, atol=2e-15)
+    # round-off by 1/sin(theta) ~ 1e6 at pi - 1e-6. A few roundings of values up to pi
+    # (ulp 4.4e-16) in exp and in log each; measured up to 1.1e-15.
+    np.testing.assert_allclose(jso3.log(jso3.exp(w)), w, rtol=0, atol=1e-14)
 
 
 def test_log_exp_roundtrip_small_angles():
@@ -292,9 +293,11 @@ def test_cayley_properties():
     # Rotation angle 2 arctan(|w|/2).
     angle = 2 * np.arctan(np.linalg.norm(w, axis=-1) / 2)
     np.testing.assert_allclose(jso3.rotation_angle(R), angle, atol=1e-14)
-    # cayley_inv o cayley = id (relative: |w| up to 20 here).
+    # cayley_inv o cayley = id (relative: |w| up to 20 here, where the inverse amplifies
+    # the rounding of R by 1 + |w|²/4 <= 101: eps x 101 ≈ 2.2e-14 per rounding; measured
+    # up to 4.6e-14).
     w_back = np.asarray(jso3.cayley_inv(R))
-    np.testing.assert_allclose(w_back, w, rtol=1e-13, atol=1e-15)
+    np.testing.assert_allclose(w_back, w, rtol=1e-12, atol=1e-15)
     # Definition of the inverse: hat(w) = 2 (R - I)(R + I)^{-1}. The reference solves with
     # R + I, whose condition number grows like |w|^2/4 <= 100: looser tolerance.
     Rt_plus, Rt_minus = np.swapaxes(R + EYE, -1, -2), np.swapaxes(R - EYE, -1, -2)
@@ -345,14 +348,18 @@ def _trivialised(f, side):
 def test_differentials_match_autodiff(name, tau, side, max_angle):
     w = np.concatenate([rotation_vectors(14, max_angle=max_angle), SPECIAL_W])
     D_ad, M = _trivialised(tau, side)(w)
-    np.testing.assert_allclose(M, -np.swapaxes(M, -1, -2), atol=1e-14)
+    # Autodiff's dR/dw R^T: sums of products of O(1) entries, a few ulps each (measured
+    # up to 1.4e-15).
+    np.testing.assert_allclose(M, -np.swapaxes(M, -1, -2), atol=1e-13)
     D = np.asarray(getattr(jso3, name)(w))
     np.testing.assert_allclose(D, D_ad, atol=1e-14)
     # The inverse: against the numerical inverse of the autodiff matrix, and D D^{-1} = I.
     # For dexp the points stay away from |w| = 2 pi, where J_r is singular: J_r^{-1} has
-    # norm up to ~1/(2 pi - |w|) ~ 2 / 0.5 here, hence 1e-13 rather than 1e-14.
+    # norm up to (|w|/2) / sin(|w|/2) ≈ 12 at |w| = 2 pi - 0.5, and inverting a matrix of
+    # condition κ errs by ~eps κ ‖J_r^{-1}‖ ≈ 2.2e-16 x 12 x 12 ≈ 3e-14 on each side
+    # (LAPACK's inverse, the closed form; measured up to 7e-14), hence 1e-12.
     D_inv = np.asarray(getattr(jso3, name + "_inv")(w))
-    np.testing.assert_allclose(D_inv, np.linalg.inv(D_ad), rtol=0, atol=1e-13)
+    np.testing.assert_allclose(D_inv, np.linalg.inv(D_ad), rtol=0, atol=1e-12)
     np.testing.assert_allclose(D @ D_inv, np.broadcast_to(EYE, D.shape), atol=1e-13)
 
 
@@ -360,7 +367,9 @@ def test_dexp_inv_near_zero_and_pi():
     """dexp(w) dexp_inv(w) = I to round-off across the branch switch and up to pi."""
     w = np.concatenate([SPECIAL_W, rotation_vectors(15, max_angle=np.pi)])
     P = jso3.dexp(w) @ jso3.dexp_inv(w)
-    np.testing.assert_allclose(P, np.broadcast_to(EYE, P.shape), atol=1e-15)
+    # Three products of entries up to ‖dexp⁻¹‖ ≈ π/2 per entry, each factor a few ulps
+    # off: ~10 roundings of ulp(2) = 4.4e-16.
+    np.testing.assert_allclose(P, np.broadcast_to(EYE, P.shape), atol=1e-14)
     np.testing.assert_array_equal(jso3.dexp_inv(np.zeros(3)), EYE)
 
 
@@ -506,7 +515,8 @@ def test_vmap_matches_loop_and_batch_dims():
     R = random_rotations(22)
     batched = np.asarray(vlog(R))
     looped = np.stack([np.asarray(jso3.log(r)) for r in R[:20]])
-    np.testing.assert_allclose(batched[:20], looped, rtol=0, atol=1e-15)
+    # Batched and unbatched kernels may round differently: a few ulps of values up to pi.
+    np.testing.assert_allclose(batched[:20], looped, rtol=0, atol=1e-14)
     # Leading batch dimensions (no vmap) give the same as vmap over a flat batch.
     Rb = R[:12].reshape(3, 4, 3, 3)
     out = jso3.log(Rb)
@@ -626,7 +636,9 @@ def test_is_rotation_and_orthogonality_error():
     with pytest.raises(TypeError, match="concrete"):
         jax.jit(so3.is_rotation)(R[0])
     err = np.asarray(jso3.orthogonality_error(np.concatenate([R, 2 * EYE[None]])))
-    # Frobenius norm of 9 entries of round-off ~1e-16 each.
-    np.testing.assert_allclose(err[:-1], 0.0, atol=4e-15)
+    # Frobenius norm of 9 entries of RᵀR − I, each a sum of 3 products (3 roundings of
+    # ~1, plus R's own departure from orthogonality, a few ulps): ≲ 3 x 1.3e-15 ≈ 4e-15
+    # at worst (measured up to 1.4e-15).
+    np.testing.assert_allclose(err[:-1], 0.0, atol=4e-14)
     np.testing.assert_allclose(err[-1], 3 * np.sqrt(3), rtol=1e-15)  # |4I - I|_F
     assert np.all(np.isfinite(jax.jit(jax.grad(so3.orthogonality_error))(EYE)))
