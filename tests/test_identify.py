@@ -424,7 +424,10 @@ def test_free_body_inertia_recovered_up_to_its_scale():
     assert sigma[-2] > 1e-6 * sigma[0]  # and only that one: the ratios are identifiable
     bound = _recovery_bound(result, problem, truth,
                             lambda th: normalised(inertia_from_params(th)), null_dims=1)
-    assert bound < 1e-11
+    # At round-off: the residuals' floor over the smallest identifiable singular value
+    # (measured 6.3e-12; the floor's realisation differs from one CPU to another), far
+    # below the start's 10 % error, so the check means something.
+    assert bound < 1e-10
     np.testing.assert_allclose(normalised(np.asarray(result.model.J)),
                                normalised(FREE_J_TRUE), rtol=0, atol=10 * bound)
 

@@ -114,7 +114,8 @@ def test_lgvi_matches_paper_eqs_18_19_step_by_step():
         worst = max(worst, np.max(np.abs(R[k].T @ R[k + 1] - F)),
                     np.max(np.abs(Pi[k + 1] - F.T @ Pi[k])) / np.linalg.norm(Pi[k]))
         np.testing.assert_allclose(R[k + 1], R[k] @ F, atol=1e-14)
-    assert worst < 1e-14
+    # A few roundings of O(1) values in each solver (measured up to 1.8e-15).
+    assert worst < 1e-13
 
 
 @pytest.mark.filterwarnings("ignore:xtol")

@@ -98,8 +98,9 @@ def test_reference_conserves_its_invariants(case):
     # steps; 1e-11 (relative) leaves room for accumulated local errors and platform
     # differences, and is 1e7 below the O(1) drift a wrong sign in the derivation causes.
     assert np.max(np.abs(E - E[0])) <= 1e-11 * max(1.0, abs(E[0]))
-    # p is conserved by the second row of the linear system alone: drift ≤ ~2e-13 measured.
-    assert np.max(np.abs(p - p[0])) <= 1e-12
+    # p is conserved by the second row of the linear system alone: drift ≤ ~2e-13 measured;
+    # 1e-11 as for the others (the solver's local errors, not round-off, set it).
+    assert np.max(np.abs(p - p[0])) <= 1e-11
     assert np.max(np.abs(lz - lz[0])) <= 1e-11 * max(1.0, abs(lz[0]))
     # R is integrated as 9 numbers: it stays orthogonal only as well as the solver is
     # accurate (same 1e-11 budget).
