@@ -14,7 +14,9 @@ starts; this file must not import :mod:`jax` or :mod:`lgvi_jax` at the top):
   on for the rest of that worker's tests anyway, depending on the order of the tests);
 * with ``--alt-numerics`` (docs/testing.md), a numerically different but valid compilation
   of every program: the bounds of the suite must hold under both. Set in ``os.environ``,
-  so the children that tests start (CLI runs, experiment scripts) inherit it.
+  so the children that tests start (CLI runs, experiment scripts) inherit it;
+* with ``--tolerance-report`` (docs/testing.md, tests/_tolerance_report.py), a list after
+  the run of the tolerance checks that came within 10x of failing.
 """
 
 from __future__ import annotations
@@ -23,6 +25,8 @@ import os
 import platform
 import shutil
 import tempfile
+
+import _tolerance_report
 
 #: Opt-out of lgvi_jax's own XLA settings (lgvi_jax._xla.OPT_OUT; not imported from there,
 #: since importing lgvi_jax here would apply them before the option is read).
@@ -46,6 +50,11 @@ def pytest_addoption(parser):
         "--alt-numerics", action="store_true", default=False,
         help="run under a numerically different but valid XLA configuration: "
              f"{_OPT_OUT}=0 and XLA_FLAGS += {' '.join(alt_xla_flags())} (docs/testing.md)")
+    parser.addoption(
+        "--tolerance-report", action="store_true", default=False,
+        help="after the run, list the tolerance checks that came within 10x of failing "
+             "(every numpy.testing.assert_allclose, and plain asserts against numbers below "
+             "1e-9); needs -o enable_assertion_pass_hook=true (docs/testing.md)")
 
 
 _CACHE_ENV = "LGVI_JAX_CACHE_DIR"  # lgvi_jax._cache.ENV
@@ -60,6 +69,8 @@ def pytest_configure(config):
         current = os.environ.get("XLA_FLAGS", "").split()
         os.environ["XLA_FLAGS"] = " ".join([*current, *(
             entry for entry in alt_xla_flags() if entry not in current)])
+    if config.getoption("--tolerance-report"):
+        _tolerance_report.start(config)
     import jax  # after the environment is set; JAX reads XLA_FLAGS when its backend starts
 
     jax.config.update("jax_num_cpu_devices", 2)
@@ -115,10 +126,26 @@ def pytest_collection_modifyitems(session, config, items):
     items.sort(key=key)  # stable: the order within a module, and of the others, is kept
 
 
+def pytest_assertion_pass(item, lineno, orig, expl):
+    if item.config.getoption("--tolerance-report"):
+        _tolerance_report.assertion_passed(item, lineno, orig, expl)
+
+
+def pytest_sessionfinish(session, exitstatus):
+    if session.config.getoption("--tolerance-report"):
+        _tolerance_report.finish(session.config)
+
+
+def pytest_terminal_summary(terminalreporter, exitstatus, config):
+    if config.getoption("--tolerance-report"):
+        _tolerance_report.summary(terminalreporter, config)
+
+
 def pytest_unconfigure(config):
-    path = getattr(config, "_lgvi_cache_dir", None)
-    if path:
-        shutil.rmtree(path, ignore_errors=True)
+    for name in ("_lgvi_cache_dir", "_lgvi_tolerance_dir", "_lgvi_pycache_dir"):
+        path = getattr(config, name, None)
+        if path:
+            shutil.rmtree(path, ignore_errors=True)
 
 
 def pytest_report_header(config):
