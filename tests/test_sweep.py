@@ -168,10 +168,10 @@ def test_batch_equals_loop_of_single_runs(car, name):
         # Round-off: the batched code may contract differently (FMA, vector loops). Each
         # metric is a difference of O(1) quantities, so its round-off is absolute (~1e-15);
         # its growth over 200 steps, if every step added in the same direction, ~2e-13
-        # (measured up to 6.4e-14): 1e-12.
+        # (measured up to 6.4e-14, 1.1e-13 with --alt-numerics): 2e-12.
         for key in ("energy_error_max", "energy_error_final", "momentum_drift_max",
                     "angular_momentum_z_drift_max", "orthogonality_error_max"):
-            np.testing.assert_allclose(sharded[key][i], ref[key], rtol=1e-9, atol=1e-12,
+            np.testing.assert_allclose(sharded[key][i], ref[key], rtol=1e-9, atol=2e-12,
                                        err_msg=key)
 
 

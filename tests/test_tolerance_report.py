@@ -8,11 +8,9 @@ import pytest
 
 
 def _passes(a, d, rtol, atol) -> bool:
-    try:
-        np.testing.assert_allclose(a, d, rtol=rtol, atol=atol)
-    except AssertionError:
-        return False
-    return True
+    # assert_allclose's test (|a - d| <= atol + rtol |d|, NaNs equal), without calling it:
+    # under --tolerance-report its failures here would be recorded as this file's.
+    return bool(np.all(np.isclose(a, d, rtol=rtol, atol=atol, equal_nan=True)))
 
 
 @pytest.mark.parametrize("seed", range(5))
