@@ -7,7 +7,8 @@ for every call site,
 * of ``numpy.testing.assert_allclose``: the largest ``|actual - desired| / (atol + rtol
   |desired|)`` over its calls (numpy's own criterion, so 1 is the edge);
 * of a plain ``assert a <= b`` / ``assert a < b`` whose source names a number below 1e-9:
-  the largest ``|a| / b`` (pytest's ``pytest_assertion_pass`` hook; it needs ``-o
+  the largest ``|a| / b``; of ``assert a == pytest.approx(b, ...)`` on scalars, ``|a − b|``
+  over the tolerance (pytest's ``pytest_assertion_pass`` hook; it needs ``-o
   enable_assertion_pass_hook=true``, and the test modules rewritten afresh, which
   :func:`start` arranges);
 
@@ -101,15 +102,27 @@ def _value(text: str) -> float | None:
 
 
 def assertion_passed(item, lineno: int, orig: str, expl: str) -> None:
-    """Record ``|a| / b`` of a passing ``assert a <(=) b`` whose source has a tight number."""
-    if not _TIGHT.search(orig) or not expl:
+    """Record ``|a| / b`` of a passing ``assert a <(=) b`` whose source has a tight number,
+    and ``|a − b| / t`` of a passing ``assert a == pytest.approx(b, ...)`` on scalars
+    (shown as ``a == b ± t``, ``t`` to two digits)."""
+    if not expl:
         return
-    match = re.match(r"^(.*?)\s(<=|<)\s(.*)$", expl.splitlines()[0])
+    first = expl.splitlines()[0]
+    site = f"{os.path.basename(str(item.path))}:{lineno}"
+    approx = re.match(r"^(.*?) == (.*?) ± (.*)$", first)
+    if approx and "approx" in orig:
+        a, b, t = (_value(g) for g in approx.groups())
+        if None not in (a, b, t) and t > 0:
+            _keep(site, abs(a - b) / t)
+        return
+    if not _TIGHT.search(orig):
+        return
+    match = re.match(r"^(.*?)\s(<=|<)\s(.*)$", first)
     if not match:
         return
     a, b = _value(match.group(1)), _value(match.group(3))
     if a is not None and b is not None and b > 0:
-        _keep(f"{os.path.basename(str(item.path))}:{lineno}", abs(a) / b)
+        _keep(site, abs(a) / b)
 
 
 def finish(config) -> None:

@@ -32,3 +32,18 @@ def test_values_of_an_explanation_are_read():
     assert tr._value("summary['x']") is None
     assert tr._TIGHT.search("x <= 1e-12") and tr._TIGHT.search("x < 2e-9")
     assert not tr._TIGHT.search("x <= 1e-6") and not tr._TIGHT.search("x <= 0.5")
+
+
+class _Item:
+    path = "tests/test_example.py"
+
+
+def test_plain_and_approx_asserts_are_recorded(monkeypatch):
+    monkeypatch.setattr(tr, "_records", {})
+    tr.assertion_passed(_Item, 3, "x <= 1e-12", "np.float64(4e-13) <= 1e-12")
+    tr.assertion_passed(_Item, 4, "x <= 0.5", "0.25 <= 0.5")  # not a tight number: skipped
+    tr.assertion_passed(_Item, 5, "x == pytest.approx(y, rel=1e-12)",
+                        "1.0000000000005 == 1.0 ± 1.0e-12")
+    assert tr._records.keys() == {"test_example.py:3", "test_example.py:5"}
+    assert tr._records["test_example.py:3"] == pytest.approx(0.4, rel=1e-12)
+    assert tr._records["test_example.py:5"] == pytest.approx(0.5, rel=1e-3)
