@@ -113,7 +113,7 @@ class Newton(eqx.Module):
             through by autodiff; the result code says whether the last update met the
             tolerance. For testing the implicit rule.
         scalar: run the iteration on scalars (:mod:`lgvi_jax.scalarize`): the residual, its
-            Jacobian, the pivoted Gauss–Jordan inverse and the updates are emitted as scalar
+            Jacobian, its factors by blocks and the updates are emitted as scalar
             elementwise operations, so that XLA fuses an iteration into a few kernels (a
             structure of arrays under ``vmap``). Same iterates as the array form to the
             order of floating-point sums, same implicit derivatives. Plain Newton or
@@ -750,9 +750,9 @@ def _while_lanes(cond, body, init, lanes: int | None):
 
 def _iterate_scalar(programs, y0, args, solver: Newton, lanes: int | None = None):
     """:func:`_iterate_chord_refresh` (``chord_steps > 0``) or plain Newton, written on
-    scalars, with the matrix inverted by blocks (:func:`_scalar_block_inverse`).
+    scalars, with the matrix factored by blocks (:func:`_scalar_block_factor`).
     ``programs``: :func:`_scalar_programs`, replayed with their shared values materialised
-    (:class:`~lgvi_jax.scalarize.ScalarFunction`). Each outer iteration inverts the Jacobian
+    (:class:`~lgvi_jax.scalarize.ScalarFunction`). Each outer iteration factors the Jacobian
     at its iterate and runs the updates in an inner loop (chord phase: until convergence or
     stall; Newton phase: one update), so that the residual appears once in the program.
 
@@ -787,9 +787,9 @@ def _iterate_scalar(programs, y0, args, solver: Newton, lanes: int | None = None
             out[i] = v
         return out
 
-    def update(y, J_inv, k, prev, newton, cap, k_phase):
+    def update(y, J_fac, k, prev, newton, cap, k_phase):
         F = list(res_fn(as_obj(y), args_s, batched=True))
-        delta = [sc.neg(d) for d in _scalar_matvec(J_inv, F)]
+        delta = [sc.neg(d) for d in _scalar_block_solve(J_fac, F)]
         res = _scalar_max([sc.absolute(f) for f in F], zero)
         finite = sc.isfinite(res)
         for d in delta:
@@ -812,11 +812,11 @@ def _iterate_scalar(programs, y0, args, solver: Newton, lanes: int | None = None
     def outer_body(carry):
         y, k, _, _, newton, cap, refreshes, res0 = carry
         k_phase = k
-        J_inv = _scalar_block_inverse(_rows(jac_fn(as_obj(y), args_s, batched=True)))
+        J_fac = _scalar_block_factor(_rows(jac_fn(as_obj(y), args_s, batched=True)))
 
         def inner_body(c):
             y, k, _, _, prev, _, r0 = c
-            out = update(list(y), J_inv, k, prev, newton, cap, k_phase)
+            out = update(list(y), J_fac, k, prev, newton, cap, k_phase)
             return (*out, jnp.where(out[1] == 1, out[3], r0))  # the residual at the guess
 
         y, k, result, res, _, _, res0 = _while_lanes(
@@ -884,9 +884,9 @@ def _scalar_core_jvp(fn, solver, primals, tangents):
     # a gradient about twice as slow). The runtime one
     # that materialises them is made from the first input, the solution y: a primal, so
     # that ẏ stays linear in ȧ (transposable for grad).
-    J_inv = _scalar_block_inverse(_rows(jac_fn(y_s, a_s, batched=True)))
-    y_dot = [sc.neg(v) for v in _scalar_matvec(J_inv, list(dF_fn(y_s, a_s, ad_s,
-                                                                   batched=True)))]
+    J_fac = _scalar_block_factor(_rows(jac_fn(y_s, a_s, batched=True)))
+    y_dot = [sc.neg(v) for v in _scalar_block_solve(J_fac, list(dF_fn(y_s, a_s, ad_s,
+                                                                        batched=True)))]
     y_dot = jnp.stack([_jnp(v, y.dtype) for v in y_dot])
     return _solution_tangents(y, result, k, res, y_dot)
 
@@ -929,29 +929,38 @@ def _dot(a, b):
     return acc
 
 
-def _scalar_block_inverse(A):
-    """Inverse by blocks of at most 3: ``[[P, Q], [R, S]]⁻¹`` through the Schur complement
-    ``T = S − R P⁻¹ Q`` (``P`` the leading 3x3 block, the rotational unknowns of the
-    Lie-group VIs), each small block inverted by cofactors. No pivoting: for the Newton
-    matrices of the VIs, the kinetic-energy Hessian plus O(h) terms, ``P`` and ``T`` are
-    near positive definite; a singular block gives non-finite entries (reported by the
-    solver as non-finite)."""
+def _scalar_block_factor(A):
+    """``A`` factored by blocks for :func:`_scalar_block_solve`: ``A = [[P, Q], [R, S]]``
+    with ``P`` its leading 3x3 block (the rotational unknowns of the Lie-group VIs) gives
+    ``(P⁻¹, P⁻¹Q, R, factor of T)``, ``P⁻¹`` by cofactors and the Schur complement
+    ``T = S − R P⁻¹ Q`` factored the same way (a matrix of at most 3x3: ``(A⁻¹,)`` by
+    cofactors). Half the operations of forming ``A⁻¹`` (car-pendulum, 5x5), and a solve
+    costs what a product with ``A⁻¹`` would. No pivoting: for the Newton matrices of the
+    VIs, the kinetic-energy Hessian plus O(h) terms, ``P`` and ``T`` are near positive
+    definite; a singular block gives non-finite entries (reported by the solver as
+    non-finite)."""
     m = len(A)
     if m <= 3:
-        return _scalar_adjugate_inverse(A)
+        return (_scalar_adjugate_inverse(A),)
     P = [row[:3] for row in A[:3]]
     Q = [row[3:] for row in A[:3]]
     R = [row[:3] for row in A[3:]]
     S = [row[3:] for row in A[3:]]
     Pi = _scalar_adjugate_inverse(P)
     PiQ = _scalar_matmul(Pi, Q)
-    RPi = _scalar_matmul(R, Pi)
     T = [[sc.sub(S[i][j], _dot(R[i], [PiQ[k][j] for k in range(3)])) for j in range(m - 3)]
          for i in range(m - 3)]
-    Ti = _scalar_block_inverse(T) if m - 3 > 3 else _scalar_adjugate_inverse(T)
-    top_right = [[sc.neg(v) for v in row] for row in _scalar_matmul(PiQ, Ti)]
-    bottom_left = [[sc.neg(v) for v in row] for row in _scalar_matmul(Ti, RPi)]
-    corr = _scalar_matmul(PiQ, [[sc.neg(v) for v in row] for row in bottom_left])
-    top_left = [[sc.add(Pi[i][j], corr[i][j]) for j in range(3)] for i in range(3)]
-    return ([top_left[i] + top_right[i] for i in range(3)]
-            + [bottom_left[i] + Ti[i] for i in range(m - 3)])
+    return Pi, PiQ, R, _scalar_block_factor(T)
+
+
+def _scalar_block_solve(factor, f):
+    """``A⁻¹ f`` from :func:`_scalar_block_factor`: ``g = P⁻¹ f₁``,
+    ``x₂ = T⁻¹ (f₂ − R g)``, ``x₁ = g − P⁻¹Q x₂``."""
+    if len(factor) == 1:
+        return _scalar_matvec(factor[0], f)
+    Pi, PiQ, R, Tf = factor
+    g = _scalar_matvec(Pi, f[:3])
+    x2 = _scalar_block_solve(Tf, [sc.sub(a, b) for a, b in zip(f[3:], _scalar_matvec(R, g),
+                                                                   strict=True)])
+    x1 = [sc.sub(a, b) for a, b in zip(g, _scalar_matvec(PiQ, x2), strict=True)]
+    return x1 + x2
