@@ -384,20 +384,24 @@ def test_dexp_inv_near_zero_and_pi():
     np.testing.assert_array_equal(jso3.dexp_inv(np.zeros(3)), EYE)
 
 
-def test_exp_minus_identity_derivatives_equal_those_of_exp():
-    """exp_minus_identity carries its differential in closed form (a custom JVP,
-    exp(w) hat(J_r(w) d)); exp is differentiated by autodiff through the Rodrigues formula.
-    exp(w) - I and exp(w) have the same derivatives: first and second, forward and reverse,
-    on both sides of the Taylor switch, near pi and beyond."""
+@pytest.mark.parametrize("tau, tau_minus_identity",
+                         [(so3.exp, so3.exp_minus_identity),
+                          (so3.cayley, so3.cayley_minus_identity)], ids=["exp", "cayley"])
+def test_map_minus_identity_derivatives_equal_those_of_the_map(tau, tau_minus_identity):
+    """exp_minus_identity and cayley_minus_identity carry their differentials in closed
+    form (custom JVPs, tau(w) hat(D(w) d) with D = J_r or the Cayley map's (4/(4+|w|^2))
+    (I - hat(w)/2)); exp and cayley are differentiated by autodiff through their formulas.
+    tau(w) - I and tau(w) have the same derivatives: first and second, forward and reverse,
+    on both sides of exp's Taylor switch, near pi and beyond."""
     w = np.concatenate([SPECIAL_W, rotation_vectors(15, max_angle=2 * np.pi - 0.5)])
 
     @jax.jit
     @jax.vmap
     def derivatives(w):
-        return (jax.jacfwd(so3.exp)(w), jax.jacfwd(so3.exp_minus_identity)(w),
-                jax.jacrev(so3.exp_minus_identity)(w),
-                jax.jacfwd(jax.jacfwd(so3.exp))(w),
-                jax.jacfwd(jax.jacrev(so3.exp_minus_identity))(w))
+        return (jax.jacfwd(tau)(w), jax.jacfwd(tau_minus_identity)(w),
+                jax.jacrev(tau_minus_identity)(w),
+                jax.jacfwd(jax.jacfwd(tau))(w),
+                jax.jacfwd(jax.jacrev(tau_minus_identity))(w))
 
     J, J_fwd, J_rev, H, H_new = (np.asarray(x) for x in derivatives(w))
     # Entries O(1), each a few dozen roundings (~1e-15); the coefficient functions' closed
@@ -435,6 +439,7 @@ SCALAR_FNS = {
     "exp": lambda w: jnp.sum(M33 * so3.exp(w)),
     "exp_minus_identity": lambda w: jnp.sum(M33 * so3.exp_minus_identity(w)),
     "cayley": lambda w: jnp.sum(M33 * so3.cayley(w)),
+    "cayley_minus_identity": lambda w: jnp.sum(M33 * so3.cayley_minus_identity(w)),
     "dexp": lambda w: jnp.sum(M33 * so3.dexp(w)),
     "dexp_inv": lambda w: jnp.sum(M33 * so3.dexp_inv(w)),
     "log_exp": lambda w: jnp.sum(M3 * so3.log(so3.exp(w))),
@@ -476,7 +481,8 @@ def test_gradients_finite_and_match_finite_differences(name):
     _check_gradient(SCALAR_FNS[name], SPECIAL_W, FD_W)
 
 
-@pytest.mark.parametrize("name", ["exp", "exp_minus_identity", "dexp_inv"])
+@pytest.mark.parametrize("name", ["exp", "exp_minus_identity", "cayley_minus_identity",
+                                  "dexp_inv"])
 def test_second_derivatives_finite(name):
     # Newton iterations of the integrators differentiate residuals built from exp/dexp_inv,
     # so their Jacobians must be differentiable too (also through the Taylor branch).

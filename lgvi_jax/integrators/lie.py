@@ -414,8 +414,8 @@ class LGVI(AbstractLieVI):
     name: ClassVar[str] = "lgvi"
     symplectic: ClassVar[bool] = True
     #: ``F`` enters the kinetic energy through all nine entries of ``(F - I)/h``: one
-    #: reverse pass per residual beats one tangent per unknown (car-pendulum 1082 against
-    #: 1318 operations; heavy top and free body 669 against 924).
+    #: reverse pass per residual beats one tangent per unknown (car-pendulum 953 against
+    #: 1355 operations; heavy top and free body 608 against 961).
     jacobian_mode: ClassVar[JacobianMode] = JacobianMode.REVERSE
 
     def tau_minus_identity(self, w):
