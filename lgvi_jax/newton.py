@@ -590,16 +590,7 @@ def newton_solve(
         raise ValueError("newton_solve: y0 has no unknowns")
     if not jnp.issubdtype(y0_flat.dtype, jnp.floating):
         raise ValueError(f"newton_solve: y0 must be floating point, got {y0_flat.dtype}")
-
-    def flat_fn(y_flat, args):
-        out = fn(unravel(y_flat), args)
-        out_flat, _ = ravel_pytree(out)
-        if out_flat.shape != y_flat.shape:
-            raise ValueError(
-                "newton_solve: fn(y, args) must return as many residuals as unknowns, got "
-                f"{out_flat.shape[0]} residuals for {y_flat.shape[0]} unknowns"
-            )
-        return out_flat
+    flat_fn = _flat_residual(fn, y0, unravel)
 
     if solver.scalar:
         if jac0 is not None:
@@ -623,6 +614,39 @@ def newton_solve(
     if throw:
         sol = raise_if_failed(sol)
     return sol
+
+
+#: The flattened residual per residual function (for a bound method its function, with the
+#: instance in the inner key) and structure of the unknowns: every solve of the same
+#: equations then passes the same function to the solver, whose scalar programs are
+#: remembered per function (:func:`_memo`), so that another trace (a batch after one
+#: trajectory, a fit's loss after its gradient, a notebook's next ``jit``) does not build
+#: them again.
+_FLAT: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def _flat_residual(fn, y0, unravel):
+    """``fn`` on flat vectors of unknowns and residuals (``unravel``: of ``y0``'s
+    structure), one function per ``fn`` and structure (:data:`_FLAT`); a new one for
+    functions or instances that cannot be hashed or weakly referenced."""
+
+    def flat_fn(y_flat, args):
+        out = fn(unravel(y_flat), args)
+        out_flat, _ = ravel_pytree(out)
+        if out_flat.shape != y_flat.shape:
+            raise ValueError(
+                "newton_solve: fn(y, args) must return as many residuals as unknowns, got "
+                f"{out_flat.shape[0]} residuals for {y_flat.shape[0]} unknowns"
+            )
+        return out_flat
+
+    leaves, tree = jax.tree.flatten(y0)
+    key = (getattr(fn, "__self__", None), tree,
+           tuple((jnp.shape(x), jnp.result_type(x)) for x in leaves))
+    try:
+        return _FLAT.setdefault(getattr(fn, "__func__", fn), {}).setdefault(key, flat_fn)
+    except TypeError:
+        return flat_fn
 
 
 def raise_if_failed(sol: NewtonSolution) -> NewtonSolution:
@@ -878,7 +902,8 @@ def _scalar_core_jvp(fn, solver, primals, tangents):
     def dF(y, a, a_dot):
         return jax.jvp(lambda b: fn(y, b), (a,), (a_dot,))[1]
 
-    dF_fn = sc.ScalarFunction(dF, y, args, args_dot)
+    dF_fn = _memo("tangent", fn, y, (args, args_dot),
+                  lambda: sc.ScalarFunction(dF, y, args, args_dot))
     y_s, a_s, ad_s = sc.split(y), jax.tree.map(sc.split, args), jax.tree.map(sc.split, args_dot)
     # Shared values materialised, as in the solve (left to XLA, the fusions recompute them:
     # a gradient about twice as slow). The runtime one

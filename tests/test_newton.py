@@ -309,6 +309,52 @@ def test_scalar_solve_under_vmap_equals_a_loop(chord_steps):
                                       np.asarray(alone(y0[0], a[i])[0]))
 
 
+class _Power(eqx.Module):
+    """``y**k = a`` (``k`` static): a residual given as a bound method."""
+
+    k: int = eqx.field(static=True)
+
+    def residual(self, y, a):
+        return y**self.k - a
+
+
+def test_scalar_programs_are_built_once_per_equations_across_traces(monkeypatch):
+    """The scalar programs of a residual are remembered across traces (a bound method: per
+    function and instance): a second ``jit`` of another function solving the same
+    equations, and an equal instance, build none; an instance with other settings builds
+    its own, and each solve reaches its own root."""
+    from lgvi_jax import scalarize as sc
+
+    built = []
+    init = sc.ScalarFunction.__init__
+
+    def counting(self, fn, *example):
+        built.append(fn)
+        init(self, fn, *example)
+
+    monkeypatch.setattr(sc.ScalarFunction, "__init__", counting)
+    solver = Newton(scalar=True, chord_steps=8)
+    a = jnp.array([2.0, 5.0])
+
+    def solve_with(power):
+        return jax.jit(lambda y0, a: newton_solve(power.residual, y0, a, solver).value)
+
+    root3 = solve_with(_Power(3))(jnp.ones(2), a)
+    first = len(built)
+    assert first >= 2  # the residual and its Jacobian
+    # Another traced function, a new (equal) instance, other values: nothing rebuilt.
+    again = solve_with(_Power(3))(jnp.full(2, 1.5), 2.0 * a)
+    assert len(built) == first
+    root4 = solve_with(_Power(4))(jnp.ones(2), a)
+    assert len(built) > first
+    # The roots in closed form. Bound from the solver's contract: the last update is at
+    # most atol + rtol |y| (<= 3e-12 here) and, contracting at least 2x, bounds the error
+    # left (measured: 1 ulp).
+    for got, want in ((root3, a ** (1 / 3)), (again, (2.0 * a) ** (1 / 3)),
+                      (root4, a ** (1 / 4))):
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-11)
+
+
 def test_bad_settings_rejected():
     with pytest.raises(ValueError, match="rtol"):
         Newton(rtol=-1.0)
