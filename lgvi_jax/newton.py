@@ -616,19 +616,19 @@ def newton_solve(
     return sol
 
 
-#: The flattened residual per residual function (for a bound method its function, with the
-#: instance in the inner key) and structure of the unknowns: every solve of the same
-#: equations then passes the same function to the solver, whose scalar programs are
-#: remembered per function (:func:`_memo`), so that another trace (a batch after one
-#: trajectory, a fit's loss after its gradient, a notebook's next ``jit``) does not build
-#: them again.
+#: The flattened residual per residual method (its function, with the instance in the inner
+#: key) and structure of the unknowns: every solve of the same equations then passes the
+#: same function to the solver, whose scalar programs are remembered per function
+#: (:func:`_memo`), so that another trace (a batch after one trajectory, a fit's loss after
+#: its gradient, a notebook's next ``jit``) does not build them again.
 _FLAT: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
 def _flat_residual(fn, y0, unravel):
     """``fn`` on flat vectors of unknowns and residuals (``unravel``: of ``y0``'s
-    structure), one function per ``fn`` and structure (:data:`_FLAT`); a new one for
-    functions or instances that cannot be hashed or weakly referenced."""
+    structure), one function per bound method (:data:`_FLAT`; its instance hashable) and
+    structure. Other residuals (closures made per step, which the flattened function
+    would keep alive) get a new one at each call."""
 
     def flat_fn(y_flat, args):
         out = fn(unravel(y_flat), args)
@@ -640,12 +640,14 @@ def _flat_residual(fn, y0, unravel):
             )
         return out_flat
 
+    owner, instance = getattr(fn, "__func__", None), getattr(fn, "__self__", None)
+    if owner is None or instance is None:
+        return flat_fn
     leaves, tree = jax.tree.flatten(y0)
-    key = (getattr(fn, "__self__", None), tree,
-           tuple((jnp.shape(x), jnp.result_type(x)) for x in leaves))
+    key = (instance, tree, tuple((jnp.shape(x), jnp.result_type(x)) for x in leaves))
     try:
-        return _FLAT.setdefault(getattr(fn, "__func__", fn), {}).setdefault(key, flat_fn)
-    except TypeError:
+        return _FLAT.setdefault(owner, {}).setdefault(key, flat_fn)
+    except TypeError:  # an instance that cannot be hashed (arrays, tracers)
         return flat_fn
 
 
