@@ -702,6 +702,15 @@ def _rows(obj) -> list[list[Any]]:
 _PROGRAMS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
+def clear_scalar_programs() -> None:
+    """Forget every scalar program built so far (:func:`~lgvi_jax.scalarize.program_for`'s
+    and the solver's, :func:`_memo`): the next trace builds them again, as a fresh process
+    does (``lgvi-jax bench`` times cold compiles so)."""
+    sc._PROGRAMS.clear()
+    _PROGRAMS.clear()
+    _FLAT.clear()
+
+
 def _memo(kind: str, fn, y0, args, build):
     """``build()``, remembered per ``(fn, kind, argument shapes and dtypes)``: the
     programs depend on nothing else, since ``fn`` may not close over traced values (those

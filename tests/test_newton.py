@@ -13,6 +13,7 @@ from lgvi_jax.newton import (
     ChordInverse,
     Newton,
     NewtonError,
+    clear_scalar_programs,
     newton_solve,
     raise_if_failed,
 )
@@ -322,7 +323,7 @@ def test_scalar_programs_are_built_once_per_equations_across_traces(monkeypatch)
     """The scalar programs of a residual are remembered across traces (a bound method: per
     function and instance): a second ``jit`` of another function solving the same
     equations, and an equal instance, build none; an instance with other settings builds
-    its own, and each solve reaches its own root."""
+    its own, and each solve reaches its own root; ``clear_scalar_programs`` forgets them."""
     from lgvi_jax import scalarize as sc
 
     built = []
@@ -347,6 +348,11 @@ def test_scalar_programs_are_built_once_per_equations_across_traces(monkeypatch)
     assert len(built) == first
     root4 = solve_with(_Power(4))(jnp.ones(2), a)
     assert len(built) > first
+    # Forgotten (a cold compile, as lgvi-jax bench times it): built again.
+    n_built = len(built)
+    clear_scalar_programs()
+    solve_with(_Power(3))(jnp.ones(2), a)
+    assert len(built) >= n_built + 2
     # The roots in closed form. Bound from the solver's contract: the last update is at
     # most atol + rtol |y| (<= 3e-12 here) and, contracting at least 2x, bounds the error
     # left (measured: 1 ulp).
