@@ -251,10 +251,12 @@ def test_checkpointed_gradient_reuses_the_newton_solutions(scalar):
     solved = grad_fn(checkpoint_every=5, save_solutions=False)
     g = [np.asarray(f(model.J)) for f in (saved, solved)]
     # The same arithmetic on the same values, except that a recomputed solve or a step in
-    # another compiled loop may round differently: relative eps x 10 steps x the adjoint's
-    # growth (< 10 here) x a margin of 10 -> 2.2e-13 (measured 1.4e-15, |g| ~ 190).
+    # another compiled loop may round differently, and a chord solve's iterates carry such
+    # differences into its root: the worst case over the default compilation (1.4e-15,
+    # |g| ~ 190) and --alt-numerics (4.5e-14 relative, with the factored Newton solve) x a
+    # margin of 10 -> 5e-13.
     assert np.max(np.abs(g[0])) > 1.0  # a loss that really depends on J
-    np.testing.assert_allclose(g[0], g[1], rtol=2.2e-13, atol=0)
+    np.testing.assert_allclose(g[0], g[1], rtol=5e-13, atol=0)
 
     def loops(compiled):
         return compiled.as_text().count(" while(")
