@@ -70,7 +70,8 @@ from .linalg import small_solve
 from .options import Adjoint, JacobianMode, LinearSolver
 from .trajectory import RESULTS
 
-__all__ = ["ChordInverse", "Newton", "NewtonError", "NewtonSolution", "newton_solve"]
+__all__ = ["ChordInverse", "Newton", "NewtonError", "NewtonSolution", "clear_scalar_programs",
+           "newton_solve"]
 
 
 class NewtonError(RuntimeError):
