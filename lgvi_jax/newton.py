@@ -644,10 +644,8 @@ def _flat_residual(fn, y0, unravel):
     owner, instance = getattr(fn, "__func__", None), getattr(fn, "__self__", None)
     if owner is None or instance is None:
         return flat_fn
-    leaves, tree = jax.tree.flatten(y0)
-    key = (instance, tree, tuple((jnp.shape(x), jnp.result_type(x)) for x in leaves))
     try:
-        return _FLAT.setdefault(owner, {}).setdefault(key, flat_fn)
+        return _FLAT.setdefault(owner, {}).setdefault((instance, *sc.signature(y0)), flat_fn)
     except TypeError:  # an instance that cannot be hashed (arrays, tracers)
         return flat_fn
 
@@ -707,7 +705,7 @@ def clear_scalar_programs() -> None:
     """Forget every scalar program built so far (:func:`~lgvi_jax.scalarize.program_for`'s
     and the solver's, :func:`_memo`): the next trace builds them again, as a fresh process
     does (``lgvi-jax bench`` times cold compiles so)."""
-    sc._PROGRAMS.clear()
+    sc.clear_programs()
     _PROGRAMS.clear()
     _FLAT.clear()
 
@@ -716,8 +714,7 @@ def _memo(kind: str, fn, y0, args, build):
     """``build()``, remembered per ``(fn, kind, argument shapes and dtypes)``: the
     programs depend on nothing else, since ``fn`` may not close over traced values (those
     that do, with programs that take traced constants, are built afresh every time)."""
-    leaves, tree = jax.tree.flatten((y0, args))
-    key = (kind, tree, tuple((jnp.shape(x), jnp.result_type(x)) for x in leaves))
+    key = (kind, *sc.signature((y0, args)))
     try:
         per_fn = _PROGRAMS.setdefault(fn, {})
     except TypeError:  # not weakly referable

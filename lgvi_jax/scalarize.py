@@ -837,6 +837,18 @@ def _concrete(c) -> bool:
 _PROGRAMS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
+def signature(example) -> tuple:
+    """What a scalar program built for ``example`` depends on besides its function: the tree
+    structure and every leaf's shape and dtype (a key of the program caches)."""
+    leaves, tree = jax.tree.flatten(example)
+    return tree, tuple((jnp.shape(x), jnp.result_type(x)) for x in leaves)
+
+
+def clear_programs() -> None:
+    """Forget the programs :func:`program_for` has built."""
+    _PROGRAMS.clear()
+
+
 def program_for(fn: Callable, *example) -> ScalarFunction:
     """``ScalarFunction(fn, *example)``, built once per function, instance (for a bound
     method) and argument shapes, dtypes and tree structure: a rollout otherwise traces the
@@ -844,9 +856,7 @@ def program_for(fn: Callable, *example) -> ScalarFunction:
     batched sweep). Not remembered: programs of functions that close over traced values,
     and functions or instances that cannot be hashed or weakly referenced."""
     owner = getattr(fn, "__func__", fn)
-    leaves, tree = jax.tree.flatten(example)
-    key = (getattr(fn, "__self__", None), tree,
-           tuple((jnp.shape(x), jnp.result_type(x)) for x in leaves))
+    key = (getattr(fn, "__self__", None), *signature(example))
     try:
         per_fn = _PROGRAMS.setdefault(owner, {})
         found = per_fn.get(key)

@@ -454,7 +454,7 @@ def _cayley_minus_identity(w: jax.Array) -> jax.Array:
 @_cayley_minus_identity.defjvp
 def _cayley_minus_identity_jvp(primals, tangents):
     r"""The differential in closed form, :math:`\operatorname{cay}(w)\,\widehat{D(w)\delta}`
-    with :math:`D(w)\delta = k(\delta - 	frac12 w	imes\delta)` (:func:`dcayley`), instead
+    with :math:`D(w)\delta = k(\delta - \tfrac12 w\times\delta)` (:func:`dcayley`), instead
     of the derivatives of ``k`` and of the squared hat map: fewer operations in the Newton
     matrix of ``lgvi`` (reverse mode); differentiable again."""
     (w,), (dw,) = primals, tangents
