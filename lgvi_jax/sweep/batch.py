@@ -237,8 +237,8 @@ def _opaque_index(i, n: int):
     """``i`` (``0 <= i < n``) read through a sort of ``[i, n]``. XLA's CPU backend compiles
     a small loop whole, as one function, unless it holds a sort (``SmallWhileLoopHoistingPass``),
     so the loop over blocks stays on XLA's runtime (a few kernel launches per block) while
-    the rollout inside it is compiled as a function of its own: a batch's compile ~0.35 s
-    shorter, the run as fast (docs/engine.md). Elsewhere the sort of two integers costs
+    the rollout inside it is compiled as a function of its own, which LLVM compiles in less
+    time with the run as fast (docs/engine.md). Elsewhere the sort of two integers costs
     nothing measurable."""
     return jax.lax.sort(jnp.stack([i, jnp.asarray(n, i.dtype)]))[0]
 
