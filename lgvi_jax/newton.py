@@ -52,6 +52,8 @@ the implicit-function-theorem adjoint as in optimistix (``ImplicitAdjoint``).
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import functools
 import warnings
 import weakref
@@ -67,7 +69,7 @@ from jax.flatten_util import ravel_pytree
 
 from . import scalarize as sc
 from .linalg import small_solve
-from .options import Adjoint, JacobianMode, LinearSolver
+from .options import Adjoint, JacobianLoop, JacobianMode, LinearSolver
 from .trajectory import RESULTS
 
 __all__ = ["ChordInverse", "Newton", "NewtonError", "NewtonSolution", "clear_scalar_programs",
@@ -126,6 +128,13 @@ class Newton(eqx.Module):
             other at every compilation). The Lie-group VIs name theirs
             (:class:`~lgvi_jax.integrators.lie.AbstractLieVI`). Same matrix to the order
             of floating-point sums.
+        jacobian_loop: a :class:`~lgvi_jax.options.JacobianLoop` (or its string): when the
+            chord matrix on scalars is computed in loops over the unknowns (per block of
+            them, the JVP along one unknown at a time: a smaller program, compiled faster,
+            ~1.2-1.3x the unrolled Jacobian's run-time operations). ``"batched"``
+            (default): for a batch of solves (under ``vmap``), whose compilation is the
+            longer; one solve unrolled. ``"never"``, ``"always"``. Same matrix to the order
+            of floating-point sums.
     """
 
     rtol: float = 1e-12
@@ -142,6 +151,8 @@ class Newton(eqx.Module):
     scalar: bool = eqx.field(static=True, default=False)
     scalar_jacobian: JacobianMode = eqx.field(static=True, default=JacobianMode.AUTO,
                                               converter=JacobianMode.coerce)
+    jacobian_loop: JacobianLoop = eqx.field(static=True, default=JacobianLoop.BATCHED,
+                                            converter=JacobianLoop.coerce)
 
     @property
     def scalar_compatible(self) -> bool:
@@ -156,6 +167,7 @@ class Newton(eqx.Module):
         LinearSolver.parse(self.linear_solver, "Newton", "linear_solver")
         Adjoint.parse(self.adjoint, "Newton", "adjoint")
         JacobianMode.parse(self.scalar_jacobian, "Newton", "scalar_jacobian")
+        JacobianLoop.parse(self.jacobian_loop, "Newton", "jacobian_loop")
         if self.scalar and not self.scalar_compatible:
             raise ValueError("Newton: scalar=True supports Newton and chord_steps (no chord, "
                              "broyden, unroll or unrolled adjoint)")
@@ -747,11 +759,79 @@ def _scalar_jacobian(fn, y0, args,
     return _memo(f"jacobian:{mode}", fn, y0, args, build)
 
 
-def _scalar_programs(fn, y0, args, mode: JacobianMode | str = JacobianMode.AUTO):
-    """The residual and its Jacobian (``mode``: :func:`_scalar_jacobian`) as scalar
-    programs (traced once per solve)."""
+_BATCHED_TRACE = contextvars.ContextVar("lgvi_jax.newton.batched_trace", default=False)
+
+
+@contextlib.contextmanager
+def batched_trace():
+    """While tracing code that ``vmap`` will batch (a sweep's block, including the bodies of
+    its loops, which JAX traces unbatched and batches afterwards), the solves on scalars
+    trace their unbatched form with a batch's programs. ``custom_vmap`` traces that form,
+    which a batch never runs, before batching the solve: with a batch's programs, memoised,
+    it builds no program of its own (the unrolled Jacobian, for ``jacobian_loop=
+    "batched"``). Where it does run, it computes the same matrix up to the order of the
+    floating-point sums."""
+    token = _BATCHED_TRACE.set(True)
+    try:
+        yield
+    finally:
+        _BATCHED_TRACE.reset(token)
+
+
+def _scalar_programs(fn, y0, args, solver: Newton, lanes: int | None):
+    """The residual's scalar program and the chord matrix's, ``(residual, jacobian)``:
+    ``jacobian(y, args)`` takes scalars (:func:`~lgvi_jax.scalarize.split`) and returns
+    the matrix's rows, unrolled (``solver.scalar_jacobian``: :func:`_scalar_jacobian`) or
+    column by column in a loop (``solver.jacobian_loop``: :func:`_scalar_tangent`) for a
+    batch of ``lanes`` solves or one (``None``; a batch's within :func:`batched_trace`).
+    Each program is traced once per solve."""
     residual = _memo("residual", fn, y0, args, lambda: sc.ScalarFunction(fn, y0, args))
-    return residual, _scalar_jacobian(fn, y0, args, mode)
+    batched = lanes is not None or _BATCHED_TRACE.get()
+    loop = (solver.jacobian_loop == JacobianLoop.ALWAYS
+            or (solver.jacobian_loop == JacobianLoop.BATCHED and batched))
+    if loop:
+        tangent = _scalar_tangent(fn, y0, args)
+
+        def jacobian(y, a):
+            blocks = tangent.on_unit_vectors(y, a, batched=True)  # [block][row][column]
+            return [[column for rows in blocks for column in rows[r]]
+                    for r in range(len(blocks[0]))]
+    else:
+        jac_fn = _scalar_jacobian(fn, y0, args, solver.scalar_jacobian)
+
+        def jacobian(y, a):
+            return _rows(jac_fn(y, a, batched=True))
+
+    return residual, jacobian
+
+
+def _column_blocks(m: int) -> list[tuple[int, int]]:
+    """The blocks of the unknowns of :func:`_scalar_block_factor`: the leading three (the
+    rotational unknowns of the Lie-group VIs) and the rest."""
+    return [(0, m)] if m <= 3 else [(0, 3), (3, m)]
+
+
+def _scalar_tangent(fn, y0, args) -> sc.ScalarFunction:
+    """``(y, args, d_1, ..., d_k) -> (∂fn/∂y_1 · d_1, ..., ∂fn/∂y_k · d_k)`` for the blocks
+    ``y_b`` of the unknowns (:func:`_column_blocks`) as one scalar program (the primal
+    operations shared): its
+    :meth:`~lgvi_jax.scalarize.ScalarFunction.on_unit_vectors` is the Jacobian, block of
+    columns by block of columns. By blocks, each loop's tangent operations fold the other
+    blocks' zeros: car-pendulum ``hamel``, 326 per rotational column and 106 per other
+    column, against 383 per column for one loop over all five (the unrolled Jacobian:
+    1018)."""
+    blocks = _column_blocks(y0.shape[-1])
+
+    def tangents(y, a, *ds):
+        _, linear = jax.linearize(lambda y: fn(y, a), y)
+        m = y.shape[-1]
+        return tuple(linear(jnp.concatenate([jnp.zeros(lo, y.dtype), d,
+                                             jnp.zeros(m - hi, y.dtype)]))
+                     for (lo, hi), d in zip(blocks, ds, strict=True))
+
+    directions = [jax.ShapeDtypeStruct((hi - lo,), y0.dtype) for lo, hi in blocks]
+    return _memo("tangent_blocks", fn, y0, args,
+                 lambda: sc.ScalarFunction(tangents, y0, args, *directions))
 
 
 def _split_lanes(x, lanes: int | None) -> np.ndarray:
@@ -794,7 +874,7 @@ def _iterate_scalar(programs, y0, args, solver: Newton, lanes: int | None = None
     says so, see :func:`_scalar_core`), every scalar a vector over the batch (a structure of
     arrays) and the loops :func:`_while_lanes`: each member's iterates, result and
     iteration count are those of its own solve. Returns (y, result, steps, residual)."""
-    res_fn, jac_fn = programs
+    res_fn, jacobian = programs
     args, args_batched = args if lanes is not None else (args, None)
     dtype = y0.dtype
     m = y0.shape[-1]
@@ -845,7 +925,7 @@ def _iterate_scalar(programs, y0, args, solver: Newton, lanes: int | None = None
     def outer_body(carry):
         y, k, _, _, newton, cap, refreshes, res0 = carry
         k_phase = k
-        J_fac = _scalar_block_factor(_rows(jac_fn(as_obj(y), args_s, batched=True)))
+        J_fac = _scalar_block_factor(jacobian(as_obj(y), args_s))
 
         def inner_body(c):
             y, k, _, _, prev, _, r0 = c
@@ -883,17 +963,22 @@ def _scalar_core(fn, solver, y0, args):
     # fusions recompute them (a slower run and a longer compile). Under vmap the solve is
     # written on vectors over the batch (custom_vmap, _iterate_scalar's lanes) rather than
     # batched by JAX, which retraces the loops' bodies until their carries settle.
-    programs = _scalar_programs(fn, y0, args, solver.scalar_jacobian)
+    # The shapes of one solve's arguments (what its programs are built for): not the
+    # tracers themselves, which custom_vmap's rule would see as batched constants.
+    example = jax.tree.map(lambda x: jax.ShapeDtypeStruct(jnp.shape(x), jnp.result_type(x)),
+                           (y0, args))
 
     @jax.custom_batching.custom_vmap
     def solve(y0, args):
-        return _iterate_scalar(programs, y0, args, solver)
+        return _iterate_scalar(_scalar_programs(fn, *example, solver, None), y0, args,
+                               solver)
 
     @solve.def_vmap
     def _solve_batched(axis_size, in_batched, y0, args):
         y0_batched, args_batched = in_batched
         if not y0_batched:
             y0 = jnp.broadcast_to(y0, (axis_size, *y0.shape))
+        programs = _scalar_programs(fn, *example, solver, axis_size)
         out = _iterate_scalar(programs, y0, (args, args_batched), solver, lanes=axis_size)
         return out, (True,) * len(out)
 

@@ -1,13 +1,14 @@
 """The choices of algorithm of the solvers and integrators, as enums.
 
 Each option that picks an algorithm (the Newton solver's :class:`LinearSolver`,
-:class:`Adjoint` and :class:`JacobianMode`, the Lie-group VIs' :class:`ChordMatrix`, the Hamel
-VIs' :class:`HamelMap` and :class:`Variation`) is a string enum: a member *is* its string
-(``ChordMatrix.MASS == "mass"``, same hash, ``str()`` and ``format()`` give ``"mass"``), so
-that the fields accept either and every comparison, dictionary lookup and file key written
-with the string keeps working. The modules store the member (an equinox ``converter``), so
-that ``LGVI(chord_matrix="mass")`` and ``LGVI(chord_matrix=ChordMatrix.MASS)`` are the same
-module: equal, with the same hash and the same ``jit`` cache entry::
+:class:`Adjoint`, :class:`JacobianMode` and :class:`JacobianLoop`, the Lie-group VIs'
+:class:`ChordMatrix`, the Hamel VIs' :class:`HamelMap` and :class:`Variation`) is a string
+enum: a member *is* its string (``ChordMatrix.MASS == "mass"``, same hash, ``str()`` and
+``format()`` give ``"mass"``), so that the fields accept either and every comparison,
+dictionary lookup and file key written with the string keeps working. The modules store the
+member (an equinox ``converter``), so that ``LGVI(chord_matrix="mass")`` and
+``LGVI(chord_matrix=ChordMatrix.MASS)`` are the same module: equal, with the same hash and
+the same ``jit`` cache entry::
 
     import lgvi_jax as lj
 
@@ -23,7 +24,8 @@ from __future__ import annotations
 import enum
 from typing import Any, TypeVar
 
-__all__ = ["Adjoint", "ChordMatrix", "HamelMap", "JacobianMode", "LinearSolver", "Variation"]
+__all__ = ["Adjoint", "ChordMatrix", "HamelMap", "JacobianLoop", "JacobianMode", "LinearSolver",
+           "Variation"]
 
 _C = TypeVar("_C", bound="_Choice")
 
@@ -106,6 +108,22 @@ class JacobianMode(_Choice):
     FORWARD = "forward"
     #: ``jax.jacrev``: one cotangent per residual.
     REVERSE = "reverse"
+
+
+class JacobianLoop(_Choice):
+    """When a solve on scalars computes its chord matrix in loops at run time
+    (``Newton.jacobian_loop``): for each block of unknowns (the rotational three, the rest),
+    the JVP along that block run once per unknown of it, instead of the unrolled Jacobian
+    (the ``scalar_jacobian`` mode's program). The car-pendulum's ``hamel``: 668 operations
+    in the program instead of 1018 (a shorter compilation), 1190 run instead of 1018
+    (docs/engine.md). The same matrix to the order of floating-point sums."""
+
+    #: For a batch of solves (under ``vmap``: a sweep's batch); one solve unrolled.
+    BATCHED = "batched"
+    #: Always unrolled (the ``scalar_jacobian`` mode's program).
+    NEVER = "never"
+    #: Always in a loop.
+    ALWAYS = "always"
 
 
 class ChordMatrix(_Choice):

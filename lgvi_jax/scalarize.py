@@ -584,6 +584,7 @@ class ScalarFunction:
                    for _ in range(math.prod(a.shape))]
         self.program = _simplify_program(jax.make_jaxpr(program)(*scalars))
         self.keep = _materialization_points(self.program.jaxpr)
+        self._split: tuple[list, list[list]] | None = None  # _split_by_directions
 
     @property
     def size(self) -> int:
@@ -603,6 +604,91 @@ class ScalarFunction:
         if one is not None:
             outs = [v if _is_const(v) else v / one for v in outs]
         return jax.tree.unflatten(self.out_tree, _unflatten(outs, self.out_avals))
+
+    def on_unit_vectors(self, *scalar_args,
+                        batched: bool | None = None) -> list[list[jax.Array]]:
+        """For a program ``(*args, d_1, ..., d_k) -> (o_1, ..., o_k)`` whose output ``o_b``
+        reads only ``d_b`` of the directions (each one array), called with ``args``: for
+        each ``b``, ``o_b`` (flat) at every unit vector of ``d_b``, the others zero,
+        computed in a loop over them at run time. The operations that read no direction run
+        once, before the loops; each loop runs those that read its own. Each output is an
+        array whose leading axis is the unit vector's index.
+
+        Given the program of the JVPs along blocks of the unknowns, a Jacobian block of
+        columns by block of columns: each loop runs only its block's tangent operations (in
+        the program: ~1/size of its block of the unrolled Jacobian, where the one-hot
+        tangents fold at trace time). ``batched``: as :meth:`__call__`."""
+        k = len(self.in_tree.children()) - len(scalar_args)
+        directions = self.in_avals[len(self.in_avals) - k:]
+        sizes = [math.prod(a.shape) for a in directions]
+        placeholders = [np.full(a.shape, _const(0, a.dtype), dtype=object) for a in directions]
+        leaves = self.in_tree.flatten_up_to((*scalar_args, *placeholders))
+        consts = [split(c) for c in self.traced_consts]
+        n = sum(sizes)
+        flat = _flatten([np.asarray(x, dtype=object) for x in consts + list(leaves)])[:-n]
+        batched = _under_vmap() if batched is None else batched
+        one = _runtime_one(flat) if batched else None
+        keep = self.keep if batched else frozenset()
+        fixed, per_direction = self._split_by_directions(tuple(sizes))
+        jaxpr = self.program.jaxpr
+        env: dict = dict(zip(jaxpr.constvars, self.program.consts, strict=True))
+        env.update(zip(jaxpr.invars[:-n], flat, strict=True))
+        _replay_eqns(fixed, env, keep, one)
+        shape = np.broadcast_shapes(*[np.shape(v) for v in flat if not _is_const(v)])
+        dtypes = _flat_dtypes(self.out_avals)
+        out_sizes = [math.prod(a.shape) for a in self.out_avals]
+        if len(out_sizes) != k:
+            raise ValueError(f"on_unit_vectors: {k} directions but {len(out_sizes)} outputs")
+        results = []
+        first_in, first_out = len(jaxpr.invars) - n, 0
+        for b in range(k):
+            d_vars = jaxpr.invars[first_in: first_in + sizes[b]]
+            outs = list(range(first_out, first_out + out_sizes[b]))
+            first_in, first_out = first_in + sizes[b], first_out + out_sizes[b]
+
+            def body(j, columns, d_vars=d_vars, outs=outs, eqns=per_direction[b]):
+                env_j = dict(env)
+                env_j.update((v, (j == i).astype(v.aval.dtype)) for i, v in enumerate(d_vars))
+                _replay_eqns(eqns, env_j, keep, one)
+                vals = [self.const_outputs.get(o, _read(env_j, jaxpr.outvars[o])) for o in outs]
+                if one is not None:
+                    vals = [v if _is_const(v) else v / one for v in vals]
+                return [lax.dynamic_update_index_in_dim(
+                            c, jnp.broadcast_to(_materialise(v, dtypes[o]), shape), j, 0)
+                        for c, v, o in zip(columns, vals, outs, strict=True)]
+
+            init = [jnp.zeros((sizes[b], *shape), dtypes[o]) for o in outs]
+            results.append(lax.fori_loop(0, sizes[b], body, init))
+        return results
+
+    def _split_by_directions(self, sizes: tuple[int, ...]) -> tuple[list, list[list]]:
+        """The program's operations that read none of its last ``sum(sizes)`` inputs (the
+        directions, blocks of ``sizes``), and for each block those that read it (directly
+        or through others), each in program order."""
+        if self._split is None:
+            jaxpr = self.program.jaxpr
+            n = sum(sizes)
+            block_of: dict = {}
+            start = len(jaxpr.invars) - n
+            for b, size in enumerate(sizes):
+                for v in jaxpr.invars[start: start + size]:
+                    block_of[v] = b
+                start += size
+            fixed: list = []
+            per_block: list[list] = [[] for _ in sizes]
+            for eqn in jaxpr.eqns:
+                blocks = {block_of[v] for v in eqn.invars
+                          if not isinstance(v, jex.core.Literal) and v in block_of}
+                if not blocks:
+                    fixed.append(eqn)
+                    continue
+                if len(blocks) > 1:
+                    raise ValueError("on_unit_vectors: an operation reads two directions")
+                (b,) = blocks
+                block_of.update((v, b) for v in eqn.outvars)
+                per_block[b].append(eqn)
+            self._split = (fixed, per_block)
+        return self._split
 
 
 #: A value read by ``n >= 2`` operations is materialised under ``vmap``
@@ -739,19 +825,22 @@ def sin_cos(t):
 def _replay(closed, flat, keep, one=None):
     """Evaluate a scalar program on scalars (folding with call-site constants)."""
     jaxpr = closed.jaxpr
-    env: dict = {}
+    env: dict = dict(zip(jaxpr.constvars, closed.consts, strict=True))
+    env.update(zip(jaxpr.invars, flat, strict=True))
+    _replay_eqns(jaxpr.eqns, env, keep, one)
+    return [_read(env, v) for v in jaxpr.outvars]
 
-    def read(v):
-        if isinstance(v, jex.core.Literal):
-            return _const(v.val, v.aval.dtype)
-        return env[v]
 
-    for var, val in zip(jaxpr.constvars, closed.consts, strict=True):
-        env[var] = val
-    for var, val in zip(jaxpr.invars, flat, strict=True):
-        env[var] = val
-    for eqn in jaxpr.eqns:
-        invals = [read(v) for v in eqn.invars]
+def _read(env, v):
+    if isinstance(v, jex.core.Literal):
+        return _const(v.val, v.aval.dtype)
+    return env[v]
+
+
+def _replay_eqns(eqns, env: dict, keep, one) -> None:
+    """:func:`_replay`'s loop: evaluate ``eqns`` into ``env`` (variable -> scalar)."""
+    for eqn in eqns:
+        invals = [_read(env, v) for v in eqn.invars]
         name = eqn.primitive.name
         if (one is not None and name in ("sin", "cos") and not _is_const(invals[0])
                 and eqn.outvars[0].aval.dtype == np.float64):
@@ -769,7 +858,6 @@ def _replay(closed, flat, keep, one=None):
             if one is not None and var in keep and not _is_const(val):
                 val = val / one
             env[var] = val
-    return [read(v) for v in jaxpr.outvars]
 
 
 def _switch(index, branches, dtypes):

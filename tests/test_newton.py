@@ -276,14 +276,18 @@ def scaled_cubic(y, args):
     return s * (y**3 - a) + 0.1 * jnp.sin(y[::-1])
 
 
+@pytest.mark.parametrize("jacobian_loop", ["batched", "never", "always"])
 @pytest.mark.parametrize("chord_steps", [0, 3])
-def test_scalar_solve_under_vmap_equals_a_loop(chord_steps):
+def test_scalar_solve_under_vmap_equals_a_loop(chord_steps, jacobian_loop):
     """The scalar solve batched (written on vectors over the batch, not batched by JAX)
     gives every member its own solve: the same values bit for bit, iterations and result
     codes as the solve alone, with members that converge at once, that leave the chord
     phase for the Newton fallback (far guess), that fail (non-finite data) and that run
-    out of iterations; one argument unbatched."""
-    solver = Newton(scalar=True, chord_steps=chord_steps, max_steps=8)
+    out of iterations; one argument unbatched. With the chord matrix in a loop over the
+    unit vectors (``"batched"``: the batch's; ``"always"``: both) bit for bit too, here:
+    the run-time one-hot tangents multiply by exact ones and zeros."""
+    solver = Newton(scalar=True, chord_steps=chord_steps, max_steps=8,
+                    jacobian_loop=jacobian_loop)
     a = jnp.array([[2.0, 3.0], [5.0, 7.0], [1.0, 1.0], [0.1, 100.0], [jnp.nan, 1.0],
                    [1e30, 2.0]])
     y0 = jnp.array([[1.26, 1.44], [1.0, 1.0], [1.0, 1.0], [3.0, 0.2], [1.0, 1.0],

@@ -18,6 +18,7 @@ from lgvi_jax.options import (
     Adjoint,
     ChordMatrix,
     HamelMap,
+    JacobianLoop,
     JacobianMode,
     LinearSolver,
     Variation,
@@ -27,6 +28,7 @@ ENUMS = {
     LinearSolver: ("unrolled", "lu"),
     Adjoint: ("implicit", "unrolled"),
     JacobianMode: ("auto", "forward", "reverse"),
+    JacobianLoop: ("batched", "never", "always"),
     ChordMatrix: ("exact", "mass"),
     HamelMap: ("exp", "cayley"),
     Variation: ("paper", "exact"),
@@ -85,6 +87,9 @@ def test_a_member_of_another_choice_is_refused():
                                       "'unrolled', got 'foo'"),
         (lj.Newton, "scalar_jacobian", "both", "Newton: scalar_jacobian must be one of "
                                                "'auto', 'forward', 'reverse', got 'both'"),
+        (lj.Newton, "jacobian_loop", "sometimes", "Newton: jacobian_loop must be one of "
+                                                  "'batched', 'never', 'always', got "
+                                                  "'sometimes'"),
         (lj.LGVI, "chord_matrix", "jacobian", "LGVI: chord_matrix must be one of 'exact', "
                                               "'mass', got 'jacobian'"),
         (lj.HamelVI, "chord_matrix", "x", "HamelVI: chord_matrix must be one of 'exact', "
@@ -109,6 +114,7 @@ def test_defaults_are_members():
     assert newton.linear_solver is LinearSolver.UNROLLED
     assert newton.adjoint is Adjoint.IMPLICIT
     assert newton.scalar_jacobian is JacobianMode.AUTO
+    assert newton.jacobian_loop is JacobianLoop.BATCHED
     assert lj.LGVI().chord_matrix is ChordMatrix.EXACT
     hamel = lj.HamelVI()
     assert hamel.map is HamelMap.EXP and hamel.variation is Variation.PAPER
@@ -125,6 +131,7 @@ BUILDS = [
     (lambda c: lj.Newton(linear_solver=c), LinearSolver),
     (lambda c: lj.Newton(adjoint=c), Adjoint),
     (lambda c: lj.Newton(scalar_jacobian=c), JacobianMode),
+    (lambda c: lj.Newton(jacobian_loop=c), JacobianLoop),
     (lambda c: lj.LGVI(chord_matrix=c), ChordMatrix),
     (lambda c: lj.HamelVI(chord_matrix=c), ChordMatrix),
     (lambda c: lj.HamelVI(map=c), HamelMap),

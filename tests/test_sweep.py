@@ -125,6 +125,38 @@ def test_large_batches_run_in_blocks_with_the_same_results(car, monkeypatch):
     assert len(np.unique(np.round(one_vmap["energy_error_max"], 15))) == 4
 
 
+def test_a_batch_traces_no_unrolled_jacobian(car, monkeypatch):
+    """A batch's solves compute their chord matrix in a loop over the unit vectors
+    (``Newton(jacobian_loop="batched")``), and so does the unbatched form of each solve that
+    JAX traces before batching it (``newton.batched_trace``): tracing a batched rollout, in
+    one block or several, builds no unrolled Jacobian program, which would only lengthen
+    the trace. One trajectory builds it."""
+    from lgvi_jax import newton, sweep
+
+    built = []
+    real = newton._scalar_jacobian
+
+    def counting(*args, **kwargs):
+        built.append(args[0])
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(newton, "_scalar_jacobian", counting)
+    monkeypatch.setattr(sweep.batch, "SCALAR_BLOCK", 4)  # a runner of its own: traced here
+    newton.clear_scalar_programs()
+    model, s0 = car
+    method = sweep.sweep_method("car-pendulum", "hamel")
+    states = initial_conditions(model, s0, 7, 0.05, seed=5)
+    for n in (3, 7):  # one block of 3; two blocks of 4 (one padded entry)
+        fn, args = sweep.batch.batch_arguments(model, method, _take(states, slice(0, n)), DT,
+                                               3, devices=jax.devices()[:1])
+        fn.trace(*args)
+        assert built == [], n
+    fn, args = sweep.batch.batch_arguments(model, method, _take(states, slice(0, 1)), DT, 3,
+                                           devices=jax.devices()[:1])
+    fn.trace(*args)
+    assert built
+
+
 def test_accelerators_run_the_whole_share_as_one_block():
     """On a CPU a device's share runs in cache-sized blocks; on an accelerator the block is
     the whole share (a sequence of blocks would serialise a GPU: measured on an H200, the
@@ -165,7 +197,9 @@ def test_batch_equals_loop_of_single_runs(car, name):
         assert sharded["newton_max"][i] == int(traj.newton_max)
         np.testing.assert_allclose(sharded["newton_mean"][i], float(traj.newton_mean),
                                    rtol=1e-15)
-        # Round-off: the batched code may contract differently (FMA, vector loops). Each
+        # Round-off: the batched code may contract differently (FMA, vector loops), and
+        # computes the chord matrix in a loop (another order of sums, other iterates
+        # within the solver's tolerance, 1e-12 relative to O(1) unknowns). Each
         # metric is a difference of O(1) quantities, so its round-off is absolute (~1e-15);
         # its growth over 200 steps, if every step added in the same direction, ~2e-13
         # (measured up to 6.4e-14, 1.1e-13 with --alt-numerics): 2e-12.

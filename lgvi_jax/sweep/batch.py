@@ -13,6 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import rollout, so3
+from ..newton import batched_trace
 from ..scalarize import on_scalars
 from .config import engine_name
 
@@ -213,7 +214,8 @@ def _vmap_in_blocks(f, states, block: int):
         out = f(jax.tree.map(lambda x: x[0], states))
         return jax.tree.map(lambda y: y[None], out)
     if batch <= block:
-        return jax.vmap(f)(states)
+        with batched_trace():
+            return jax.vmap(f)(states)
     n_blocks = -(-batch // block)
     size = -(-batch // n_blocks)
     pad = n_blocks * size - batch
@@ -227,7 +229,8 @@ def _vmap_in_blocks(f, states, block: int):
     def block_of(_, i):
         j = _opaque_index(i, n_blocks)
         x = jax.tree.map(lambda a: jax.lax.dynamic_index_in_dim(a, j, keepdims=False), xs)
-        return None, jax.vmap(f)(x)
+        with batched_trace():
+            return None, jax.vmap(f)(x)
 
     _, out = jax.lax.scan(block_of, None, jnp.arange(n_blocks, dtype=jnp.int32))
     return jax.tree.map(lambda y: y.reshape(n_blocks * size, *y.shape[2:])[:batch], out)
