@@ -132,9 +132,9 @@ class Newton(eqx.Module):
             chord matrix on scalars is computed in loops over the unknowns (per block of
             them, the JVP along one unknown at a time: a smaller program, compiled faster,
             ~1.2-1.3x the unrolled Jacobian's run-time operations). ``"batched"``
-            (default): for a batch of solves (under ``vmap``), whose compilation is the
-            longer; one solve unrolled. ``"never"``, ``"always"``. Same matrix to the order
-            of floating-point sums.
+            (default): for a batch of solves (under ``vmap``) on a CPU, whose compilation
+            is the longer; one solve, and batches on an accelerator, unrolled.
+            ``"never"``, ``"always"``. Same matrix to the order of floating-point sums.
     """
 
     rtol: float = 1e-12
@@ -787,8 +787,12 @@ def _scalar_programs(fn, y0, args, solver: Newton, lanes: int | None):
     Each program is traced once per solve."""
     residual = _memo("residual", fn, y0, args, lambda: sc.ScalarFunction(fn, y0, args))
     batched = lanes is not None or _BATCHED_TRACE.get()
+    # "batched" on a CPU only: there a batch's compile is LLVM compiling the rollout as one
+    # function, which the loops shrink; an accelerator would launch each loop iteration's
+    # kernels (and test its predicate) once per column and step.
     loop = (solver.jacobian_loop == JacobianLoop.ALWAYS
-            or (solver.jacobian_loop == JacobianLoop.BATCHED and batched))
+            or (solver.jacobian_loop == JacobianLoop.BATCHED and batched
+                and jax.default_backend() == "cpu"))
     if loop:
         tangent = _scalar_tangent(fn, y0, args)
 

@@ -118,7 +118,8 @@ class JacobianLoop(_Choice):
     in the program instead of 1018 (a shorter compilation), 1190 run instead of 1018
     (docs/engine.md). The same matrix to the order of floating-point sums."""
 
-    #: For a batch of solves (under ``vmap``: a sweep's batch); one solve unrolled.
+    #: For a batch of solves (under ``vmap``: a sweep's batch) on a CPU; one solve, and
+    #: batches on an accelerator (which would launch each column's kernels), unrolled.
     BATCHED = "batched"
     #: Always unrolled (the ``scalar_jacobian`` mode's program).
     NEVER = "never"

@@ -314,6 +314,31 @@ def test_scalar_solve_under_vmap_equals_a_loop(chord_steps, jacobian_loop):
                                       np.asarray(alone(y0[0], a[i])[0]))
 
 
+@pytest.mark.parametrize("backend, unrolled", [("cpu", False), ("gpu", True)])
+def test_a_batch_builds_the_loop_jacobian_on_a_cpu_only(monkeypatch, backend, unrolled):
+    """``jacobian_loop="batched"`` (the default): a batch of solves on a CPU computes its
+    chord matrix in loops (traced as a sweep traces a block: no unrolled Jacobian program
+    built at all); on an accelerator, which would launch each loop iteration's kernels
+    once per column, unrolled."""
+    from lgvi_jax import newton
+
+    built = []
+    real = newton._scalar_jacobian
+    monkeypatch.setattr(newton, "_scalar_jacobian",
+                        lambda *a, **k: built.append(1) or real(*a, **k))
+    monkeypatch.setattr(jax, "default_backend", lambda: backend)
+    newton.clear_scalar_programs()
+    solver = Newton(scalar=True, chord_steps=3, max_steps=8)
+    a = jnp.array([[2.0, 3.0], [5.0, 7.0]])
+
+    def solve(y0, a):
+        return newton_solve(scaled_cubic, y0, (a, jnp.asarray(1.5)), solver).value
+
+    with newton.batched_trace():  # as a sweep traces its blocks
+        jax.make_jaxpr(jax.vmap(solve))(jnp.ones((2, 2)), a)
+    assert bool(built) == unrolled
+
+
 class _Power(eqx.Module):
     """``y**k = a`` (``k`` static): a residual given as a bound method."""
 

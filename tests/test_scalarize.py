@@ -190,6 +190,39 @@ def test_newton_jacobian_program_is_the_smaller_mode_and_equals_jacfwd(method):
                                rtol=0, atol=1e-10)
 
 
+def test_on_unit_vectors_runs_each_direction_block_on_its_unit_vectors():
+    """``ScalarFunction.on_unit_vectors`` of ``(x, d1, d2) -> (A(x) d1, B(x) d2)``: ``A(x)``
+    and ``B(x)`` column by column (index j of each output: the unit vector e_j), the
+    operations that read no direction outside the loops; a program whose output reads two
+    direction blocks is refused by name."""
+    def f(x, d1, d2):
+        a = jnp.array([[x[0], 2.0 * x[1], jnp.sin(x[0])], [x[0] * x[1], 0.0, 1.0]])
+        b = jnp.array([[jnp.exp(x[1]), x[0] ** 2], [3.0, x[0] - x[1]]])
+        return a @ d1, b @ d2
+
+    x = jnp.array([0.7, -0.3])
+    sf = ScalarFunction(f, x, jnp.zeros(3), jnp.zeros(2))
+    fixed, (first, second) = sf._split_by_directions((3, 2))
+    assert fixed and first and second  # sin, exp and the products of x: before the loops
+
+    @jax.jit
+    def columns(x):
+        return sf.on_unit_vectors(split(x))
+
+    (a_rows, b_rows) = columns(x)
+    a = np.array([[0.7, -0.6, np.sin(0.7)], [0.7 * -0.3, 0.0, 1.0]])
+    b = np.array([[np.exp(-0.3), 0.49], [3.0, 1.0]])
+    # each output entry r holds [A(x) e_j]_r = A[r, j] at index j; bound: a few roundings
+    np.testing.assert_allclose(np.stack(a_rows), a, rtol=1e-15, atol=1e-15)
+    np.testing.assert_allclose(np.stack(b_rows), b, rtol=1e-15, atol=1e-15)
+
+    def mixed(x, d1, d2):
+        return x[0] * d1 + jnp.sum(d2), d2
+
+    with pytest.raises(ValueError, match="reads two directions"):
+        ScalarFunction(mixed, x, jnp.zeros(2), jnp.zeros(2)).on_unit_vectors(split(x))
+
+
 @pytest.mark.parametrize("method", [LGVI(), HamelVI(variation="exact")],
                          ids=["lgvi", "hamel-exact"])
 def test_jacobian_in_a_loop_over_unit_vectors_equals_jacfwd(method):
