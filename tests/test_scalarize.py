@@ -160,6 +160,19 @@ def test_a_cond_stays_a_branch_on_one_member_and_selects_on_a_batch():
             np.testing.assert_allclose(np.asarray(join(g)), e, rtol=0, atol=ROUNDING)
 
 
+def _car_pendulum_residual(method):
+    """``method``'s Newton residual for the car-pendulum as a function of the flat unknowns
+    ``(ξ, u)``, a point ``y`` and the arguments (the paper's state, h = 5e-3)."""
+    model = lj.CarPendulum()
+    s0 = model.default_state()
+    args = (model, s0.R, s0.mu, s0.q, s0.p, jnp.asarray(5e-3))
+
+    def flat(y, a):
+        return jnp.concatenate(method._residual((y[:3], y[3:]), a))
+
+    return flat, jnp.array([0.3, -0.2, 1.1, 0.05, -0.4]), args
+
+
 @pytest.mark.parametrize("method", [LGVI(), HamelVI()], ids=["lgvi", "hamel"])
 def test_newton_jacobian_program_is_the_smaller_mode_and_equals_jacfwd(method):
     """The scalar engine's Jacobian program is forward or reverse mode, whichever has fewer
@@ -168,14 +181,7 @@ def test_newton_jacobian_program_is_the_smaller_mode_and_equals_jacfwd(method):
     inertias, 1/h), in another order: 100 * eps * 1e3 = 2e-11, taken as 1e-10."""
     from lgvi_jax.newton import _scalar_jacobian
 
-    model = lj.CarPendulum()
-    s0 = model.default_state()
-    args = (model, s0.R, s0.mu, s0.q, s0.p, jnp.asarray(5e-3))
-
-    def flat(y, a):
-        return jnp.concatenate(method._residual((y[:3], y[3:]), a))
-
-    y = jnp.array([0.3, -0.2, 1.1, 0.05, -0.4])
+    flat, y, args = _car_pendulum_residual(method)
     chosen = _scalar_jacobian(flat, y, args)  # "auto"
     sizes = {mode: ScalarFunction(jac(flat), y, args).size
              for mode, jac in (("forward", jax.jacfwd), ("reverse", jax.jacrev))}
@@ -236,14 +242,7 @@ def test_jacobian_in_a_loop_over_unit_vectors_equals_jacfwd(method):
     unrolled program (1e-10)."""
     from lgvi_jax.newton import _scalar_jacobian, _scalar_tangent
 
-    model = lj.CarPendulum()
-    s0 = model.default_state()
-    args = (model, s0.R, s0.mu, s0.q, s0.p, jnp.asarray(5e-3))
-
-    def flat(y, a):
-        return jnp.concatenate(method._residual((y[:3], y[3:]), a))
-
-    y = jnp.array([0.3, -0.2, 1.1, 0.05, -0.4])
+    flat, y, args = _car_pendulum_residual(method)
     tangent = _scalar_tangent(flat, y, args)
     # Blocks of columns: the rotational three and the shape's two.
     _, (rotational, shape) = tangent._split_by_directions((3, 2))
