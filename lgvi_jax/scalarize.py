@@ -584,7 +584,7 @@ class ScalarFunction:
                    for _ in range(math.prod(a.shape))]
         self.program = _simplify_program(jax.make_jaxpr(program)(*scalars))
         self.keep = _materialization_points(self.program.jaxpr)
-        self._split: tuple[list, list[list]] | None = None  # _split_by_directions
+        self._splits: dict = {}  # _split_by_directions, per block sizes
 
     @property
     def size(self) -> int:
@@ -629,16 +629,16 @@ class ScalarFunction:
         batched = _under_vmap() if batched is None else batched
         one = _runtime_one(flat) if batched else None
         keep = self.keep if batched else frozenset()
-        fixed, per_direction = self._split_by_directions(tuple(sizes))
+        out_sizes = [math.prod(a.shape) for a in self.out_avals]
+        if len(out_sizes) != k:
+            raise ValueError(f"on_unit_vectors: {k} directions but {len(out_sizes)} outputs")
+        fixed, per_direction = self._split_by_directions(tuple(sizes), tuple(out_sizes))
         jaxpr = self.program.jaxpr
         env: dict = dict(zip(jaxpr.constvars, self.program.consts, strict=True))
         env.update(zip(jaxpr.invars[:-n], flat, strict=True))
         _replay_eqns(fixed, env, keep, one)
         shape = np.broadcast_shapes(*[np.shape(v) for v in flat if not _is_const(v)])
         dtypes = _flat_dtypes(self.out_avals)
-        out_sizes = [math.prod(a.shape) for a in self.out_avals]
-        if len(out_sizes) != k:
-            raise ValueError(f"on_unit_vectors: {k} directions but {len(out_sizes)} outputs")
         results = []
         first_in, first_out = len(jaxpr.invars) - n, 0
         for b in range(k):
@@ -661,18 +661,20 @@ class ScalarFunction:
             results.append(lax.fori_loop(0, sizes[b], body, init))
         return results
 
-    def _split_by_directions(self, sizes: tuple[int, ...]) -> tuple[list, list[list]]:
+    def _split_by_directions(self, sizes: tuple[int, ...],
+                             out_sizes: tuple[int, ...]) -> tuple[list, list[list]]:
         """The program's operations that read none of its last ``sum(sizes)`` inputs (the
         directions, blocks of ``sizes``), and for each block those that read it (directly
-        or through others), each in program order."""
-        if self._split is None:
+        or through others), each in program order. Refuses an operation that reads two
+        blocks, or an output (in groups of ``out_sizes``, one per block) that reads
+        another group's block."""
+        key = (sizes, out_sizes)
+        if key not in self._splits:
             jaxpr = self.program.jaxpr
-            n = sum(sizes)
             block_of: dict = {}
-            start = len(jaxpr.invars) - n
+            start = len(jaxpr.invars) - sum(sizes)
             for b, size in enumerate(sizes):
-                for v in jaxpr.invars[start: start + size]:
-                    block_of[v] = b
+                block_of.update((v, b) for v in jaxpr.invars[start: start + size])
                 start += size
             fixed: list = []
             per_block: list[list] = [[] for _ in sizes]
@@ -687,8 +689,13 @@ class ScalarFunction:
                 (b,) = blocks
                 block_of.update((v, b) for v in eqn.outvars)
                 per_block[b].append(eqn)
-            self._split = (fixed, per_block)
-        return self._split
+            groups = [b for b, size in enumerate(out_sizes) for _ in range(size)]
+            for b, v in zip(groups, jaxpr.outvars, strict=True):
+                if not isinstance(v, jex.core.Literal) and block_of.get(v, b) != b:
+                    raise ValueError(f"on_unit_vectors: output {b} reads direction "
+                                     f"{block_of[v]}")
+            self._splits[key] = (fixed, per_block)
+        return self._splits[key]
 
 
 #: A value read by ``n >= 2`` operations is materialised under ``vmap``

@@ -199,8 +199,9 @@ def test_newton_jacobian_program_is_the_smaller_mode_and_equals_jacfwd(method):
 def test_on_unit_vectors_runs_each_direction_block_on_its_unit_vectors():
     """``ScalarFunction.on_unit_vectors`` of ``(x, d1, d2) -> (A(x) d1, B(x) d2)``: ``A(x)``
     and ``B(x)`` column by column (index j of each output: the unit vector e_j), the
-    operations that read no direction outside the loops; a program whose output reads two
-    direction blocks is refused by name."""
+    operations that read no direction outside the loops; a program with an operation that
+    reads two direction blocks, or an output that reads another output's block, is refused
+    by name."""
     def f(x, d1, d2):
         a = jnp.array([[x[0], 2.0 * x[1], jnp.sin(x[0])], [x[0] * x[1], 0.0, 1.0]])
         b = jnp.array([[jnp.exp(x[1]), x[0] ** 2], [3.0, x[0] - x[1]]])
@@ -208,7 +209,7 @@ def test_on_unit_vectors_runs_each_direction_block_on_its_unit_vectors():
 
     x = jnp.array([0.7, -0.3])
     sf = ScalarFunction(f, x, jnp.zeros(3), jnp.zeros(2))
-    fixed, (first, second) = sf._split_by_directions((3, 2))
+    fixed, (first, second) = sf._split_by_directions((3, 2), (2, 2))
     assert fixed and first and second  # sin, exp and the products of x: before the loops
 
     @jax.jit
@@ -228,6 +229,12 @@ def test_on_unit_vectors_runs_each_direction_block_on_its_unit_vectors():
     with pytest.raises(ValueError, match="reads two directions"):
         ScalarFunction(mixed, x, jnp.zeros(2), jnp.zeros(2)).on_unit_vectors(split(x))
 
+    def swapped(x, d1, d2):
+        return x[0] * d2, x[1] * d1
+
+    with pytest.raises(ValueError, match="output 0 reads direction 1"):
+        ScalarFunction(swapped, x, jnp.zeros(2), jnp.zeros(2)).on_unit_vectors(split(x))
+
 
 @pytest.mark.parametrize("method", [LGVI(), HamelVI(variation="exact")],
                          ids=["lgvi", "hamel-exact"])
@@ -245,7 +252,7 @@ def test_jacobian_in_a_loop_over_unit_vectors_equals_jacfwd(method):
     flat, y, args = _car_pendulum_residual(method)
     tangent = _scalar_tangent(flat, y, args)
     # Blocks of columns: the rotational three and the shape's two.
-    _, (rotational, shape) = tangent._split_by_directions((3, 2))
+    _, (rotational, shape) = tangent._split_by_directions((3, 2), (5, 5))
     unrolled = _scalar_jacobian(flat, y, args, method.jacobian_mode).size
     assert 3 * len(rotational) + 2 * len(shape) < 1.5 * unrolled
     assert len(rotational) + len(shape) < unrolled / 2
