@@ -782,8 +782,8 @@ def _scalar_programs(fn, y0, args, solver: Newton, lanes: int | None):
     """The residual's scalar program and the chord matrix's, ``(residual, jacobian)``:
     ``jacobian(y, args)`` takes scalars (:func:`~lgvi_jax.scalarize.split`) and returns
     the matrix's rows, unrolled (``solver.scalar_jacobian``: :func:`_scalar_jacobian`) or
-    column by column in a loop (``solver.jacobian_loop``: :func:`_scalar_tangent`) for a
-    batch of ``lanes`` solves or one (``None``; a batch's within :func:`batched_trace`).
+    by blocks of columns in loops (``solver.jacobian_loop``: :func:`_scalar_tangent`) for
+    a batch of ``lanes`` solves or one (``None``; a batch's within :func:`batched_trace`).
     Each program is traced once per solve."""
     residual = _memo("residual", fn, y0, args, lambda: sc.ScalarFunction(fn, y0, args))
     batched = lanes is not None or _BATCHED_TRACE.get()
