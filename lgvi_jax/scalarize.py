@@ -584,7 +584,7 @@ class ScalarFunction:
                    for _ in range(math.prod(a.shape))]
         self.program = _simplify_program(jax.make_jaxpr(program)(*scalars))
         self.keep = _materialization_points(self.program.jaxpr)
-        self._splits: dict = {}  # _split_by_directions, per block sizes
+        self._splits: dict = {}  # _split_by_directions, per number of directions
 
     @property
     def size(self) -> int:
@@ -594,16 +594,25 @@ class ScalarFunction:
     def __call__(self, *scalar_args, batched: bool | None = None):
         """``batched``: materialise the shared values (see the class docstring); default:
         when called under ``vmap`` (not visible inside a loop's body: pass it there)."""
+        flat, one, keep = self._inputs(scalar_args, batched)
+        outs = [self._output(i, v, one)
+                for i, v in enumerate(_replay(self.program, flat, keep, one))]
+        return jax.tree.unflatten(self.out_tree, _unflatten(outs, self.out_avals))
+
+    def _inputs(self, scalar_args, batched: bool | None):
+        """The program's flat inputs (traced constants first), the runtime one that
+        materialises shared values (``None`` unless ``batched``) and those values."""
         leaves = self.in_tree.flatten_up_to(scalar_args)
         consts = [split(c) for c in self.traced_consts]
         flat = _flatten([np.asarray(x, dtype=object) for x in consts + list(leaves)])
         batched = _under_vmap() if batched is None else batched
         one = _runtime_one(flat) if batched else None
-        outs = _replay(self.program, flat, self.keep if batched else frozenset(), one)
-        outs = [self.const_outputs.get(i, v) for i, v in enumerate(outs)]
-        if one is not None:
-            outs = [v if _is_const(v) else v / one for v in outs]
-        return jax.tree.unflatten(self.out_tree, _unflatten(outs, self.out_avals))
+        return flat, one, self.keep if batched else frozenset()
+
+    def _output(self, index: int, value, one):
+        """Flat output ``index``: its constant if it is one, materialised when batched."""
+        value = self.const_outputs.get(index, value)
+        return value if one is None or _is_const(value) else value / one
 
     def on_unit_vectors(self, *scalar_args,
                         batched: bool | None = None) -> list[list[jax.Array]]:
@@ -620,19 +629,11 @@ class ScalarFunction:
         tangents fold at trace time). ``batched``: as :meth:`__call__`."""
         k = len(self.in_tree.children()) - len(scalar_args)
         directions = self.in_avals[len(self.in_avals) - k:]
-        sizes = [math.prod(a.shape) for a in directions]
         placeholders = [np.full(a.shape, _const(0, a.dtype), dtype=object) for a in directions]
-        leaves = self.in_tree.flatten_up_to((*scalar_args, *placeholders))
-        consts = [split(c) for c in self.traced_consts]
+        flat, one, keep = self._inputs((*scalar_args, *placeholders), batched)
+        sizes, out_sizes, fixed, per_direction = self._split_by_directions(k)
         n = sum(sizes)
-        flat = _flatten([np.asarray(x, dtype=object) for x in consts + list(leaves)])[:-n]
-        batched = _under_vmap() if batched is None else batched
-        one = _runtime_one(flat) if batched else None
-        keep = self.keep if batched else frozenset()
-        out_sizes = [math.prod(a.shape) for a in self.out_avals]
-        if len(out_sizes) != k:
-            raise ValueError(f"on_unit_vectors: {k} directions but {len(out_sizes)} outputs")
-        fixed, per_direction = self._split_by_directions(tuple(sizes), tuple(out_sizes))
+        flat = flat[:-n]
         jaxpr = self.program.jaxpr
         env: dict = dict(zip(jaxpr.constvars, self.program.consts, strict=True))
         env.update(zip(jaxpr.invars[:-n], flat, strict=True))
@@ -650,9 +651,7 @@ class ScalarFunction:
                 env_j = dict(env)
                 env_j.update((v, (j == i).astype(v.aval.dtype)) for i, v in enumerate(d_vars))
                 _replay_eqns(eqns, env_j, keep, one)
-                vals = [self.const_outputs.get(o, _read(env_j, jaxpr.outvars[o])) for o in outs]
-                if one is not None:
-                    vals = [v if _is_const(v) else v / one for v in vals]
+                vals = [self._output(o, _read(env_j, jaxpr.outvars[o]), one) for o in outs]
                 return [lax.dynamic_update_index_in_dim(
                             c, jnp.broadcast_to(_materialise(v, dtypes[o]), shape), j, 0)
                         for c, v, o in zip(columns, vals, outs, strict=True)]
@@ -661,15 +660,18 @@ class ScalarFunction:
             results.append(lax.fori_loop(0, sizes[b], body, init))
         return results
 
-    def _split_by_directions(self, sizes: tuple[int, ...],
-                             out_sizes: tuple[int, ...]) -> tuple[list, list[list]]:
-        """The program's operations that read none of its last ``sum(sizes)`` inputs (the
-        directions, blocks of ``sizes``), and for each block those that read it (directly
-        or through others), each in program order. Refuses an operation that reads two
-        blocks, or an output (in groups of ``out_sizes``, one per block) that reads
-        another group's block."""
-        key = (sizes, out_sizes)
-        if key not in self._splits:
+    def _split_by_directions(self, k: int) -> tuple[list, list, list, list[list]]:
+        """For the last ``k`` inputs as directions (one array each) and the ``k`` outputs:
+        their sizes, the program's operations that read no direction, and for each
+        direction those that read it (directly or through others), each in program order.
+        Refuses an operation that reads two directions, or an output that reads another
+        output's direction."""
+        if k not in self._splits:
+            sizes = [math.prod(a.shape) for a in self.in_avals[len(self.in_avals) - k:]]
+            out_sizes = [math.prod(a.shape) for a in self.out_avals]
+            if len(out_sizes) != k:
+                raise ValueError(f"on_unit_vectors: {k} directions but {len(out_sizes)} "
+                                 "outputs")
             jaxpr = self.program.jaxpr
             block_of: dict = {}
             start = len(jaxpr.invars) - sum(sizes)
@@ -694,8 +696,8 @@ class ScalarFunction:
                 if not isinstance(v, jex.core.Literal) and block_of.get(v, b) != b:
                     raise ValueError(f"on_unit_vectors: output {b} reads direction "
                                      f"{block_of[v]}")
-            self._splits[key] = (fixed, per_block)
-        return self._splits[key]
+            self._splits[k] = (sizes, out_sizes, fixed, per_block)
+        return self._splits[k]
 
 
 #: A value read by ``n >= 2`` operations is materialised under ``vmap``
