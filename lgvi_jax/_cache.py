@@ -35,7 +35,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-__all__ = ["cache_dir", "call", "enable", "prepare"]
+__all__ = ["cache_dir", "call", "enable", "prepare", "program"]
 
 #: Environment variable naming the cache folder (``off`` to disable).
 ENV = "LGVI_JAX_CACHE_DIR"
@@ -151,25 +151,39 @@ def call(name: str, fn: Callable, *args: Any) -> Any:
     run from that export; on a hit it is deserialised. The result equals ``fn(*args)``: it
     is the same program. Without the cache, or for a static part that cannot be keyed, it is
     ``fn(*args)``."""
+    return program(name, fn, *args)(*args)
+
+
+def program(name: str, fn: Callable, *args: Any) -> Callable:
+    """What :func:`call` runs for arguments shaped like ``args``, loaded (or traced and
+    stored) now: a function of arguments with the same static part (``fn`` itself without
+    the cache), which several threads may then call."""
     if _traces is None:
-        return fn(*args)
+        return fn
     import equinox as eqx
     import jax
 
     if jax.process_count() > 1:  # a multi-process program: traced by every process
-        return fn(*args)
+        return fn
 
     dynamic, static = eqx.partition(args, eqx.is_array)
     leaves, treedef = jax.tree.flatten(dynamic)
     key = _key(name, static, leaves)
     if key is None:
-        return fn(*args)
+        return fn
     if key not in _loaded:
         def flat(*flat_leaves):
             return fn(*eqx.combine(jax.tree.unflatten(treedef, flat_leaves), static))
 
-        _loaded[key] = _load_or_export(key, flat, leaves)
-    return _loaded[key](*leaves)
+        jitted = _load_or_export(key, flat, leaves)
+        # Compiled now, so that threads calling it at once do not each compile it.
+        _loaded[key] = _compiled(jitted, jitted.lower(*leaves).compile())
+    run = _loaded[key]
+
+    def loaded(*args):
+        return run(*jax.tree.leaves(eqx.filter(args, eqx.is_array)))
+
+    return loaded
 
 
 def _is_input(x: Any) -> bool:
@@ -207,14 +221,18 @@ def prepare(name: str, fn: Callable, *args: Any) -> None:
         compiled = jitted.lower(*leaves).compile()
     except Exception:
         return
+    _loaded.setdefault(key, _compiled(jitted, compiled))
 
+
+def _compiled(jitted: Callable, compiled: Callable) -> Callable:
+    """``compiled``, or ``jitted`` for inputs it was not compiled for."""
     def run(*xs):
         try:
             return compiled(*xs)
         except (TypeError, ValueError):  # inputs placed otherwise than announced
             return jitted(*xs)
 
-    _loaded.setdefault(key, run)
+    return run
 
 
 def _load_or_export(key: str, flat: Callable, leaves: Sequence) -> Callable:

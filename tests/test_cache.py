@@ -10,6 +10,7 @@ import sys
 from pathlib import Path
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -104,7 +105,8 @@ def _batch(method_name="hamel"):
     model, state0 = get_system("free-rigid-body").build({})
     method = sweep.sweep_method("free-rigid-body", method_name)
     states = sweep.initial_conditions(model, state0, 4, 0.1, 3)
-    return sweep.batch_arguments(model, method, states, 0.01, 50)
+    # One device: the program the sweep runs once per device's share (sweep.batch._Shares)
+    return sweep.batch_arguments(model, method, states, 0.01, 50, devices=jax.devices()[:1])
 
 
 def _assert_same(out, ref):
@@ -218,5 +220,32 @@ def test_a_prepared_rollout_is_loaded_once_and_gives_the_same_results(traces, mo
     fn, args = sweep.batch_arguments(model, method, states, 0.01, 50, devices=devices)
     with monkeypatch.context() as m:
         m.setattr(_cache, "_load_or_export", lambda *a: pytest.fail("loaded again"))
-        out = _cache.call("sweep.run_batch", fn, *args)
+        out = sweep.run_batch(model, method, states, 0.01, 50, devices=devices)
     _assert_same(out, fn(*args))
+
+
+def test_a_loaded_program_serves_several_threads(traces, monkeypatch):
+    """``_cache.program`` loads (here: traces and stores) the program once, compiled, and
+    its callable gives ``fn``'s results from several threads at once (the sweep's shares,
+    one per CPU device) without loading it again."""
+    import threading
+
+    loads = []
+    real = _cache._load_or_export
+    monkeypatch.setattr(_cache, "_load_or_export", lambda *a: loads.append(1) or real(*a))
+    fn = jax.jit(lambda x, k: jnp.cumsum(jnp.sin(k * x)))
+    xs = [jnp.linspace(0.0, 1.0 + i, 64) for i in range(4)]
+    run = _cache.program("test", fn, xs[0], 3.0)
+    outs = [None] * len(xs)
+
+    def one(i):
+        outs[i] = run(xs[i], 3.0)
+
+    threads = [threading.Thread(target=one, args=(i,)) for i in range(len(xs))]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert loads == [1]
+    for x, out in zip(xs, outs, strict=True):
+        np.testing.assert_array_equal(np.asarray(out), np.asarray(fn(x, 3.0)))

@@ -176,7 +176,7 @@ def test_accelerators_run_the_whole_share_as_one_block():
 
 @pytest.mark.parametrize("name", ["lgvi"])
 def test_batch_equals_loop_of_single_runs(car, name):
-    """The vmapped and sharded batch reproduces each single-trajectory run."""
+    """The vmapped batch split over the devices reproduces each single-trajectory run."""
     model, s0 = car
     method = lj.RIGID_METHODS[name]()
     states = initial_conditions(model, s0, 4, 0.05, seed=2)
@@ -207,6 +207,45 @@ def test_batch_equals_loop_of_single_runs(car, name):
                     "angular_momentum_z_drift_max", "orthogonality_error_max"):
             np.testing.assert_allclose(sharded[key][i], ref[key], rtol=1e-9, atol=2e-12,
                                        err_msg=key)
+
+
+def test_cpu_devices_run_the_one_device_program_once_per_share(car, monkeypatch):
+    """On several CPU devices a batch is the one-device program run once per device's
+    share, the shares concurrently (``sweep.batch._Shares``: no SPMD partitioning to
+    compile). Each share's metrics equal that program run on the share alone, bit for bit,
+    through the call, the compiled form and ``run_batch``; inside a transformation the
+    runner is the one-device program on the whole batch; a share's error reaches the
+    caller."""
+    from lgvi_jax import sweep
+
+    model, s0 = car
+    method = sweep.sweep_method("car-pendulum", "hamel")
+    states = initial_conditions(model, s0, 6, 0.05, seed=7)
+    fn, args = sweep.batch_arguments(model, method, states, DT, 40)
+    assert isinstance(fn, sweep.batch._Shares) and fn.n == 2
+    one, _ = sweep.batch.batch_arguments(model, method, states, DT, 40,
+                                         devices=jax.devices()[:1])
+    assert fn.program is one  # the same jitted program
+    alone = [one(*part) for part in fn.shares(args)]  # 3 states each, one after the other
+    want = {k: np.concatenate([np.asarray(a[k]) for a in alone]) for k in alone[0]}
+    compiled = fn.lower(*args).compile()
+    for got in (fn(*args), compiled(args[0], *args[2:]),
+                run_batch(model, method, states, DT, 40)):
+        assert set(got) == set(want)
+        for k in want:
+            np.testing.assert_array_equal(got[k], want[k], err_msg=k)
+    assert (want["result"] == 0).all() and len(np.unique(want["energy_error_max"])) == 6
+    traced = jax.jit(lambda p, st: fn(p, args[1], st, *args[3:]))(args[0], args[2])
+    # Round-off only: 6 states in one block against two blocks of 3 (other vector code
+    # paths), as in test_batch_equals_loop_of_single_runs.
+    np.testing.assert_allclose(np.asarray(traced["energy_error_max"]),
+                               want["energy_error_max"], rtol=1e-9, atol=1e-12)
+
+    def broken(*a):
+        raise RuntimeError("share failed")
+
+    with pytest.raises(RuntimeError, match="share failed"):
+        fn.run(broken, fn.shares(args))
 
 
 def test_failed_trajectory_is_flagged_and_isolated(car):

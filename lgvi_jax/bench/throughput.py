@@ -9,7 +9,7 @@ Four parts (``lgvi-jax bench --out DIR``; writes ``bench.json`` and ``bench.md``
    energy error, every momentum map's drift, the orthogonality error and the Newton
    iterations measured after every step), at h = 5e-3 over ``steps`` steps (10^4 by
    default), for one trajectory (a sweep of one: one device) and for a batch (1024 by
-   default, sharded over every device in ``jax.devices()``: on a CPU-only machine one
+   default, split over every device in ``jax.devices()``: on a CPU-only machine one
    XLA host device per core, ``lgvi-jax bench --devices``), from the sweep's initial
    conditions (perturbation 0.01, seed 0). The method is built as the sweep builds it
    (:func:`lgvi_jax.sweep.sweep_method`): ``--engines scalar`` (the default) is what the

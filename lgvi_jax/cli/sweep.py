@@ -146,7 +146,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     sw.add_argument("--devices", default="auto", metavar="auto|N",
                     help="host devices to expose on a CPU-only machine (default auto: one "
                     "per core; in a distributed sweep, per core this process may run on); the "
-                    "batch is sharded over all devices")
+                    "batch is split over all devices")
     sw.add_argument("--set", action="append", metavar="NAME=V1[,V2...]",
                     help="override a parameter or the central initial value (repeatable)")
     sw.add_argument("--chord", choices=("exact", "mass"), default="exact",

@@ -4,11 +4,12 @@ A sweep draws ``n`` initial conditions around a model's default state, integrate
 with every ``(method, dt)`` pair and records, per trajectory, how well the structure was
 kept. It is built for long unattended runs:
 
-* **Batched and sharded.** A chunk of trajectories is one ``jax.vmap`` of a jitted rollout,
-  split over every device in ``jax.devices()`` with ``jax.shard_map`` (each device runs its
-  share independently, no communication). On a CPU-only machine, expose one XLA host
-  device per core (``lgvi-jax sweep --devices N``, or ``jax.config.update(
-  "jax_num_cpu_devices", N)`` before JAX starts, or ``XLA_FLAGS=
+* **Batched and split over the devices.** A chunk of trajectories is one ``jax.vmap`` of a
+  jitted rollout, split over every device in ``jax.devices()``, each device's share
+  independent of the others (no communication): on CPUs the one-device program run once
+  per share, the shares concurrently; on accelerators ``jax.shard_map``. On a CPU-only
+  machine, expose one XLA host device per core (``lgvi-jax sweep --devices N``, or
+  ``jax.config.update("jax_num_cpu_devices", N)`` before JAX starts, or ``XLA_FLAGS=
   --xla_force_host_platform_device_count=N``). The step ``dt`` and the number of steps are
   run-time values, so each method compiles once per sweep.
 * **Resumable.** Results go to disk chunk by chunk, each file written atomically

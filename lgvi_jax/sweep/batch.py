@@ -1,9 +1,10 @@
 """The batched rollout of a sweep: initial conditions drawn from ``(seed, i)``, one
 trajectory's running metrics (:mod:`lgvi_jax.rollout` with an observer), ``vmap`` in blocks
-and ``shard_map`` over the devices (:func:`run_batch`, :func:`batch_arguments`)."""
+and split over the devices (:func:`run_batch`, :func:`batch_arguments`)."""
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -247,11 +248,15 @@ def _opaque_index(i, n: int):
 
 
 def _runner(devices: tuple, kind: str = "metrics", block: int = BLOCK) -> Callable:
-    """A jitted batched rollout (``kind`` = ``"metrics"`` or ``"final"``), sharded over
-    ``devices`` with ``shard_map``, each device's share in blocks of at most ``block``
-    (cached per device set, kind and block size)."""
+    """A batched rollout (``kind`` = ``"metrics"`` or ``"final"``) over ``devices``, each
+    device's share in blocks of at most ``block`` (cached per device set, kind and block
+    size): jitted for one device; on several CPU devices, that program run once per share
+    (:class:`_Shares`); on several accelerators, sharded with ``shard_map``."""
     key = (devices, kind, block)
     if key in _RUNNERS:
+        return _RUNNERS[key]
+    if len(devices) > 1 and all(d.platform == "cpu" for d in devices):
+        _RUNNERS[key] = _Shares(_runner(devices[:1], kind, block), len(devices), devices[0])
         return _RUNNERS[key]
     one = _ONE[kind]
 
@@ -280,6 +285,108 @@ def _runner(devices: tuple, kind: str = "metrics", block: int = BLOCK) -> Callab
         fn = jax.jit(sharded, static_argnums=1)
     _RUNNERS[key] = fn
     return fn
+
+
+class _Shares:
+    """The batched rollout on ``n`` CPU devices: the one-device program (``program``,
+    jitted) run once per device's share, the shares at the same time from threads on the
+    first device, whose CPU client runs concurrent calls in parallel (one core each).
+
+    Why not ``shard_map``: the same work, but its program goes through XLA's SPMD
+    partitioner, which adds 0.1-0.35 s to a car-pendulum batch's 1.7-2.5 s compile
+    (docs/engine.md); on an accelerator the devices are real and ``shard_map`` stays.
+    Called like the jitted function (``runner(*args)``, ``runner.lower(*args).compile()``
+    then ``compiled(*dynamic_args)``), with the states whole on the first device
+    (:func:`batch_arguments`); returns NumPy arrays. Called inside a JAX transformation
+    (traced arguments), it is the one-device program on the whole batch."""
+
+    def __init__(self, program: Callable, n: int, device):
+        self.program, self.n, self.device = program, n, device
+
+    def shares(self, args: tuple) -> list[tuple]:
+        """``args`` (of the whole batch) once per share: the states cut along their
+        leading axis (on the host; a :class:`jax.ShapeDtypeStruct` gets the share's
+        shape), the other arguments as they are."""
+        params, static, states, *rest = args
+
+        def cut(x, i):
+            size = x.shape[0] // self.n
+            if isinstance(x, jax.ShapeDtypeStruct):
+                return jax.ShapeDtypeStruct((size, *x.shape[1:]), x.dtype,
+                                            sharding=x.sharding)
+            part = np.asarray(x)[i * size:(i + 1) * size]
+            return jax.device_put(part, self.device)
+
+        return [(params, static, jax.tree.map(lambda x, i=i: cut(x, i), states), *rest)
+                for i in range(self.n)]
+
+    def run(self, call: Callable, parts: list[tuple]) -> dict[str, np.ndarray]:
+        """``call(*part)`` for every share at the same time; their outputs joined. The
+        jitted program is compiled first, once (concurrent first calls would each trace
+        and compile it)."""
+        if call is self.program:
+            compiled = call.lower(*parts[0]).compile()  # kept by JAX's caches
+
+            def call(params, static, *rest):
+                return compiled(params, *rest)
+        outs: list = [None] * len(parts)
+        errors: list[BaseException] = []
+
+        def one(i):
+            try:
+                outs[i] = jax.block_until_ready(call(*parts[i]))
+            except BaseException as err:  # re-raised in the calling thread
+                errors.append(err)
+
+        threads = [threading.Thread(target=one, args=(i,), daemon=True)
+                   for i in range(1, len(parts))]
+        for t in threads:
+            t.start()
+        one(0)
+        for t in threads:
+            t.join()
+        if errors:
+            raise errors[0]
+        return jax.tree.map(lambda *xs: np.concatenate([np.asarray(x) for x in xs]), *outs)
+
+    def __call__(self, *args):
+        if any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(args)):
+            return self.program(*args)  # inside a transformation: the whole batch at once
+        return self.run(self.program, self.shares(args))
+
+    def trace(self, *args):
+        """One share's program traced (its ``jaxpr``; ``lower()`` as :meth:`lower`)."""
+        return _SharesStage(self, self.program.trace(*self.shares(args)[0]))
+
+    def lower(self, *args):
+        return _SharesStage(self, self.program.lower(*self.shares(args)[0]))
+
+
+class _SharesStage:
+    """A stage of one share's program (traced or lowered; its attributes), whose
+    ``lower()`` and ``compile()`` stay shares: the compiled form is a function of the
+    dynamic arguments (those of the jitted function's compiled form: the static one left
+    out) of the whole batch."""
+
+    def __init__(self, shares: _Shares, stage):
+        self.shares, self.stage = shares, stage
+
+    def __getattr__(self, name):
+        return getattr(self.stage, name)
+
+    def lower(self):
+        return _SharesStage(self.shares, self.stage.lower())
+
+    def compile(self, *args, **kwargs):
+        compiled = self.stage.compile(*args, **kwargs)
+        shares = self.shares
+
+        def run(params, states, *rest):
+            parts = shares.shares((params, None, states, *rest))
+            return shares.run(lambda p, _, st, *r: compiled(p, st, *r), parts)
+
+        run.memory_analysis = compiled.memory_analysis  # one device's (as shard_map's)
+        return run
 
 
 def _sharding(devices, batch: bool):
@@ -317,6 +424,8 @@ def _prepare_batch(model, method, state0, batch: int, dt, n_steps, sample_every,
                                                              jnp.result_type(x)), state0)
         fn, args = batch_arguments(model, method, states, dt, n_steps,
                                    sample_every=sample_every, devices=devices)
+        if isinstance(fn, _Shares):
+            fn, args = fn.program, fn.shares(args)[0]
         _cache.prepare("sweep.run_batch", fn, *args)
     except Exception:  # only a head start: run_batch reports any error itself
         pass
@@ -333,10 +442,12 @@ def batch_arguments(model, method, states, dt, n_steps, *, sample_every=1, devic
     if batch % len(devices):
         devices = devices[:1]
     params, static = eqx.partition((model, method), eqx.is_array)
-    args = (_place(params, devices, False), static, _place(states, devices, True),
-            jnp.float64(dt), jnp.int32(n_steps), jnp.int32(sample_every))
     block = _block(method, devices, batch)
-    return _runner(devices, kind, block), args
+    runner = _runner(devices, kind, block)
+    on = devices[:1] if isinstance(runner, _Shares) else devices  # cut into shares there
+    args = (_place(params, on, False), static, _place(states, on, True),
+            jnp.float64(dt), jnp.int32(n_steps), jnp.int32(sample_every))
+    return runner, args
 
 
 def _block(method, devices, batch: int) -> int:
@@ -361,6 +472,9 @@ def run_batch(model, method, states, dt: float, n_steps: int, *, sample_every: i
 
     fn, args = batch_arguments(model, method, states, dt, n_steps, sample_every=sample_every,
                                devices=devices)
+    if isinstance(fn, _Shares):  # one share's program, loaded once, run per share
+        parts = fn.shares(args)
+        return fn.run(_cache.program("sweep.run_batch", fn.program, *parts[0]), parts)
     out = _cache.call("sweep.run_batch", fn, *args)  # traced once per cache (CLI)
     return {k: np.asarray(v) for k, v in out.items()}
 
