@@ -241,8 +241,10 @@ def test_cpu_devices_run_the_one_device_program_once_per_share(car, monkeypatch)
     np.testing.assert_allclose(np.asarray(traced["energy_error_max"]),
                                want["energy_error_max"], rtol=1e-9, atol=1e-12)
 
-    def broken(*a):
-        raise RuntimeError("share failed")
+    def broken(params, static, states, *rest):  # the second share only (a thread's)
+        if float(np.asarray(states.q)[0, 0]) == float(np.asarray(args[2].q)[3, 0]):
+            raise RuntimeError("share failed")
+        return {"x": np.zeros(3)}
 
     with pytest.raises(RuntimeError, match="share failed"):
         fn.run(broken, fn.shares(args))

@@ -332,17 +332,22 @@ class _Shares:
         outs: list = [None] * len(parts)
         errors: list[BaseException] = []
 
-        def one(i):
+        def share(i):
             try:
                 outs[i] = jax.block_until_ready(call(*parts[i]))
             except BaseException as err:  # re-raised in the calling thread
                 errors.append(err)
 
-        threads = [threading.Thread(target=one, args=(i,), daemon=True)
+        threads = [threading.Thread(target=share, args=(i,), daemon=True)
                    for i in range(1, len(parts))]
         for t in threads:
             t.start()
-        one(0)
+        try:  # the first share in this thread (an interrupt ends the wait at once)
+            outs[0] = jax.block_until_ready(call(*parts[0]))
+        except Exception:
+            for t in threads:
+                t.join()
+            raise
         for t in threads:
             t.join()
         if errors:
