@@ -241,6 +241,17 @@ def test_cpu_devices_run_the_one_device_program_once_per_share(car, monkeypatch)
     np.testing.assert_allclose(np.asarray(traced["energy_error_max"]),
                                want["energy_error_max"], rtol=1e-9, atol=1e-12)
 
+    # Beyond MAX_SHARES devices (and on accelerators) the batch is sharded with shard_map:
+    # the same metrics up to round-off (another compilation).
+    monkeypatch.setattr(sweep.batch, "MAX_SHARES", 1)
+    monkeypatch.setattr(sweep.batch, "_RUNNERS", {})
+    sharded, sharded_args = sweep.batch_arguments(model, method, states, DT, 40)
+    assert not isinstance(sharded, sweep.batch._Shares)
+    out = sharded(*sharded_args)
+    for k in ("energy_error_max", "orthogonality_error_max", "momentum_drift_max"):
+        np.testing.assert_allclose(np.asarray(out[k]), want[k], rtol=1e-9, atol=1e-12,
+                                   err_msg=k)
+
     def broken(params, static, states, *rest):  # the second share only (a thread's)
         if float(np.asarray(states.q)[0, 0]) == float(np.asarray(args[2].q)[3, 0]):
             raise RuntimeError("share failed")

@@ -205,6 +205,12 @@ BLOCK = 512
 SCALAR_BLOCK = 32
 
 
+#: The most CPU devices whose shares run as calls of one device's program
+#: (:class:`_Shares`): PJRT's CPU client runs at most 32 computations of a device at once
+#: (``max_inflight_computations_per_device``); more devices are sharded with ``shard_map``.
+MAX_SHARES = 32
+
+
 def _vmap_in_blocks(f, states, block: int):
     """``vmap(f)(states)`` over the leading axis, as a sequence of at most ``block``-sized
     vectorised blocks: ``ceil(B / block)`` blocks of equal size, the last padded with copies
@@ -250,12 +256,12 @@ def _opaque_index(i, n: int):
 def _runner(devices: tuple, kind: str = "metrics", block: int = BLOCK) -> Callable:
     """A batched rollout (``kind`` = ``"metrics"`` or ``"final"``) over ``devices``, each
     device's share in blocks of at most ``block`` (cached per device set, kind and block
-    size): jitted for one device; on several CPU devices, that program run once per share
-    (:class:`_Shares`); on several accelerators, sharded with ``shard_map``."""
+    size): jitted for one device; on several CPU devices (up to :data:`MAX_SHARES`), that
+    program run once per share (:class:`_Shares`); otherwise sharded with ``shard_map``."""
     key = (devices, kind, block)
     if key in _RUNNERS:
         return _RUNNERS[key]
-    if len(devices) > 1 and all(d.platform == "cpu" for d in devices):
+    if 1 < len(devices) <= MAX_SHARES and all(d.platform == "cpu" for d in devices):
         _RUNNERS[key] = _Shares(_runner(devices[:1], kind, block), len(devices), devices[0])
         return _RUNNERS[key]
     one = _ONE[kind]
