@@ -848,12 +848,16 @@ def _read(env, v):
 
 def _replay_eqns(eqns, env: dict, keep, one) -> None:
     """:func:`_replay`'s loop: evaluate ``eqns`` into ``env`` (variable -> scalar)."""
+    trig: dict = {}  # id of an angle -> (its sine, its cosine, the angle), computed once
     for eqn in eqns:
         invals = [_read(env, v) for v in eqn.invars]
         name = eqn.primitive.name
         if (one is not None and name in ("sin", "cos") and not _is_const(invals[0])
                 and eqn.outvars[0].aval.dtype == np.float64):
-            sine, cosine = sin_cos(invals[0])  # batched: by arithmetic
+            angle = invals[0]
+            if id(angle) not in trig:  # batched: by arithmetic, sine and cosine at once
+                trig[id(angle)] = (*sin_cos(angle), angle)
+            sine, cosine, _ = trig[id(angle)]
             outs = [sine if name == "sin" else cosine]
         elif name in _ELEMENTWISE and len(eqn.outvars) == 1 and not eqn.outvars[0].aval.shape:
             outs = [_apply(name, eqn.params, invals, eqn.outvars[0].aval.dtype, eqn.primitive)]

@@ -347,6 +347,31 @@ def test_batched_replay_emits_sine_and_cosine_by_arithmetic():
     np.testing.assert_allclose(replayed(w[0]), f(w[0]), rtol=0, atol=1e-14)
 
 
+def test_batched_replay_computes_an_angles_sine_and_cosine_once():
+    """A batched replay evaluates ``sin t`` and ``cos t`` of the same ``t`` by one
+    ``sin_cos`` (one range reduction, a ``round``, per angle), and a second angle gets its
+    own; the values are those of ``sin_cos``, bit for bit."""
+    from lgvi_jax.scalarize import sin_cos
+
+    def f(t, u):
+        return jnp.sin(t) * jnp.cos(t) + jnp.cos(t) ** 2 - jnp.sin(u)
+
+    t, u = jnp.linspace(-3.0, 3.0, 16), jnp.linspace(0.5, 7.0, 16)
+    sf = ScalarFunction(f, t[0], u[0])
+
+    def replayed(t, u):
+        return join(sf(split(t), split(u)))
+
+    prims = [e.primitive.name for e in jax.make_jaxpr(jax.vmap(replayed))(t, u).jaxpr.eqns]
+    assert prims.count("round") == 2
+
+    def want(t, u):
+        (s, c), (su, _) = sin_cos(t), sin_cos(u)
+        return s * c + c ** 2 - su
+
+    np.testing.assert_array_equal(jax.vmap(replayed)(t, u), jax.vmap(want)(t, u))
+
+
 def test_on_scalars_equals_the_function_or_returns_it():
     """``on_scalars``: small arguments give the scalar program (same values to round-off,
     bound of the module docstring), large ones or an unsupported primitive the function
