@@ -299,8 +299,8 @@ class _Shares:
     first device, whose CPU client runs concurrent calls in parallel (one core each).
 
     Why not ``shard_map``: the same work, but its program goes through XLA's SPMD
-    partitioner, which adds 0.1-0.35 s to a car-pendulum batch's 1.7-2.5 s compile
-    (docs/engine.md); on an accelerator the devices are real and ``shard_map`` stays.
+    partitioner, which lengthens every compile (docs/engine.md); on an accelerator the
+    devices are real and ``shard_map`` stays.
     Called like the jitted function (``runner(*args)``, ``runner.lower(*args).compile()``
     then ``compiled(*dynamic_args)``), with the states whole on the first device
     (:func:`batch_arguments`); returns NumPy arrays. Called inside a JAX transformation
@@ -327,14 +327,9 @@ class _Shares:
                 for i in range(self.n)]
 
     def run(self, call: Callable, parts: list[tuple]) -> dict[str, np.ndarray]:
-        """``call(*part)`` for every share at the same time; their outputs joined. The
-        jitted program is compiled first, once (concurrent first calls would each trace
-        and compile it)."""
-        if call is self.program:
-            compiled = call.lower(*parts[0]).compile()  # kept by JAX's caches
-
-            def call(params, static, *rest):
-                return compiled(params, *rest)
+        """``call(*part)`` for every share at the same time; their outputs joined.
+        ``call`` must be compiled already (concurrent first calls would each trace and
+        compile it): :func:`_with_static` of a compiled program, or a loaded one."""
         outs: list = [None] * len(parts)
         errors: list[BaseException] = []
 
@@ -363,7 +358,9 @@ class _Shares:
     def __call__(self, *args):
         if any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(args)):
             return self.program(*args)  # inside a transformation: the whole batch at once
-        return self.run(self.program, self.shares(args))
+        parts = self.shares(args)
+        compiled = self.program.lower(*parts[0]).compile()  # kept by JAX's caches
+        return self.run(_with_static(compiled), parts)
 
     def trace(self, *args):
         """One share's program traced (its ``jaxpr``; ``lower()`` as :meth:`lower`)."""
@@ -390,14 +387,22 @@ class _SharesStage:
 
     def compile(self, *args, **kwargs):
         compiled = self.stage.compile(*args, **kwargs)
-        shares = self.shares
+        shares, call = self.shares, _with_static(compiled)
 
         def run(params, states, *rest):
-            parts = shares.shares((params, None, states, *rest))
-            return shares.run(lambda p, _, st, *r: compiled(p, st, *r), parts)
+            return shares.run(call, shares.shares((params, None, states, *rest)))
 
         run.memory_analysis = compiled.memory_analysis  # one device's (as shard_map's)
         return run
+
+
+def _with_static(compiled: Callable) -> Callable:
+    """A compiled form of the jitted rollout (a function of the dynamic arguments) as a
+    function of all of them, the static one ignored (it is compiled in)."""
+    def call(params, static, *rest):
+        return compiled(params, *rest)
+
+    return call
 
 
 def _sharding(devices, batch: bool):
