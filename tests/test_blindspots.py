@@ -320,13 +320,19 @@ def test_bench_command_quick_run(tmp_path, capsys):
     assert "long_run" not in result and "fit" not in result and "gradient" not in result
     rows = {(r["system"], r["method"], r["engine"]): r for r in result["throughput"]}
     assert set(rows) == {("car-pendulum", "lgvi", "scalar")}
-    assert result["single_compiles"] == 2
+    assert result["single_compiles"] == 2 and result["batch_compiles"] == 2
     for row in rows.values():
         j = row["jax"]
         # One trajectory compiled twice: the speed reported is one of the two (the median,
         # here the slower), each listed in increasing order.
         each = j["single_steps_per_s_each"]
         assert len(each) == 2 and each[0] <= each[1] and j["single_steps_per_s"] == each[0]
+        # Compile times: the median over the compilations (of two: their mean), each
+        # one listed.
+        for label in ("single", "batch"):
+            each_s = j[f"{label}_compile_s_each"]
+            assert len(each_s) == 2 and min(each_s) > 0
+            assert j[f"{label}_compile_s"] == pytest.approx(sum(each_s) / 2, rel=1e-12)
         assert j["single_failed"] == 0 and j["batch_failed"] == 0
         assert j["single_steps_per_s"] > 0 and j["batch_steps_per_s"] > 0
         assert 0 < j["batch_energy_error_max"] < 1e-3 and j["batch_newton_mean"] >= 1
