@@ -141,7 +141,7 @@ def _prune(folder: Path) -> None:
         pass
 
 
-def call(name: str, fn: Callable, *args: Any) -> Any:
+def call(name: str, fn: Callable, *args: Any, compiler_options: dict | None = None) -> Any:
     """``fn(*args)`` through the traced-program cache when :func:`enable` turned it on.
 
     ``fn`` is a JAX-traceable function of pytrees; their array leaves are the program's
@@ -150,40 +150,60 @@ def call(name: str, fn: Callable, *args: Any) -> Any:
     :func:`jax.export.export`, stored (atomically, so concurrent runs share the folder) and
     run from that export; on a hit it is deserialised. The result equals ``fn(*args)``: it
     is the same program. Without the cache, or for a static part that cannot be keyed, it is
-    ``fn(*args)``."""
-    return program(name, fn, *args)(*args)
+    ``fn(*args)``. ``compiler_options``: XLA's, for compiling the loaded program (pass the
+    ones ``fn``'s own ``jit`` uses, so that both compile alike)."""
+    return program(name, fn, *args, compiler_options=compiler_options)(*args)
 
 
-def program(name: str, fn: Callable, *args: Any) -> Callable:
+def program(name: str, fn: Callable, *args: Any,
+            compiler_options: dict | None = None) -> Callable:
     """What :func:`call` runs for arguments shaped like ``args``, loaded (or traced and
-    stored) now: a function of arguments with the same static part (``fn`` itself without
-    the cache), which several threads may then call."""
+    stored) now and compiled with ``compiler_options``: a function of arguments with the
+    same static part (without the cache, ``fn`` itself, jitted with ``compiler_options``
+    if there are any), which several threads may then call."""
     if _traces is None:
-        return fn
+        return _uncached(fn, compiler_options)
     import equinox as eqx
     import jax
 
     if jax.process_count() > 1:  # a multi-process program: traced by every process
-        return fn
+        return _uncached(fn, compiler_options)
 
     dynamic, static = eqx.partition(args, eqx.is_array)
     leaves, treedef = jax.tree.flatten(dynamic)
     key = _key(name, static, leaves)
     if key is None:
-        return fn
+        return _uncached(fn, compiler_options)
     if key not in _loaded:
         def flat(*flat_leaves):
             return fn(*eqx.combine(jax.tree.unflatten(treedef, flat_leaves), static))
 
         jitted = _load_or_export(key, flat, leaves)
         # Compiled now, so that threads calling it at once do not each compile it.
-        _loaded[key] = _compiled(jitted, jitted.lower(*leaves).compile())
+        _loaded[key] = _compiled(jitted, jitted.lower(*leaves).compile(compiler_options))
     run = _loaded[key]
 
     def loaded(*args):
         return run(*jax.tree.leaves(eqx.filter(args, eqx.is_array)))
 
     return loaded
+
+
+_UNCACHED: dict = {}  # (fn, compiler options) -> fn jitted with them
+
+
+def _uncached(fn: Callable, compiler_options: dict | None) -> Callable:
+    """``fn`` as :func:`program` runs it without the cache: as it is, or (with
+    ``compiler_options``, which only a top-level ``jit`` takes) jitted with them, once per
+    function and options."""
+    if not compiler_options:
+        return fn
+    import equinox as eqx
+
+    key = (fn, tuple(sorted(compiler_options.items())))
+    if key not in _UNCACHED:
+        _UNCACHED[key] = eqx.filter_jit(fn, compiler_options=dict(compiler_options))
+    return _UNCACHED[key]
 
 
 def _is_input(x: Any) -> bool:

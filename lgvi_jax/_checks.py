@@ -57,7 +57,17 @@ def check_float64_finite(name: str, tree: Any, owner: str) -> None:
 
 
 def as_float_array(name: str, value: Any, owner: str) -> jax.Array:
-    """Convert parameter ``name`` to a float64 JAX array (tracers pass through)."""
+    """Convert parameter ``name`` to a float64 JAX array (tracers pass through). Real
+    numbers (Python, NumPy, nested sequences) are converted on the host and placed with
+    ``device_put``: ``jnp.asarray`` would compile a conversion program per shape and dtype,
+    on the critical path of every command's start."""
+    if not isinstance(value, (jax.Array, str, bytes)) and value is not None:
+        try:
+            host = np.asarray(value)
+        except Exception:  # left to jnp.asarray, which names the problem
+            host = None
+        if host is not None and host.dtype.kind in "fiu":  # real numbers, not bools
+            return jax.device_put(host.astype(np.float64))
     try:
         return jnp.asarray(value, dtype=jnp.float64)
     except (TypeError, ValueError):
@@ -81,5 +91,6 @@ def symmetric_3x3(name: str, value: Any, owner: str) -> tuple[np.ndarray, float]
 
 def check_nonnegative(name: str, value: Any, owner: str) -> None:
     """Raise ``ValueError`` unless the scalar ``value`` is finite and >= 0."""
-    if is_concrete(value) and not (np.isfinite(value) and value >= 0):
+    # Compared on the host (a JAX comparison would compile a program).
+    if is_concrete(value) and not (np.isfinite(host := np.asarray(value)) and host >= 0):
         raise ValueError(f"{owner}: {name} must be finite and >= 0, got {float(value)!r}")

@@ -166,6 +166,37 @@ def test_the_sweeps_initial_conditions_are_stored_and_reloaded(traces, monkeypat
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
+def test_compiler_options_apply_with_and_without_the_cache(traces, monkeypatch):
+    """``_cache.call(..., compiler_options=...)`` compiles the loaded program with them and,
+    without the cache, jits ``fn`` with them (once per function and options): the sweep's
+    initial conditions (``IC_COMPILER_OPTIONS``: LLVM's optimisations off) reach the
+    compiler with their options on both paths, and are the same to the last bit either
+    way and in any chunking."""
+    from jax import stages
+
+    from lgvi_jax import sweep
+    from lgvi_jax.sweep import batch
+    from lgvi_jax.systems import get_system
+
+    model, state0 = get_system("car-pendulum").build({})
+    seen = []
+    real = stages.Lowered.compile
+    monkeypatch.setattr(stages.Lowered, "compile",
+                        lambda self, options=None: seen.append(options) or real(self, options))
+    cached = sweep.initial_conditions(model, state0, 8, 0.1, 5)
+    assert len(list(traces.glob("*.jaxexport"))) == 1
+    assert seen == [batch.IC_COMPILER_OPTIONS]
+    monkeypatch.setattr(_cache, "_traces", None)
+    uncached = sweep.initial_conditions(model, state0, 8, 0.1, 5)
+    tail = sweep.initial_conditions(model, state0, 3, 0.1, 5, start=5)
+    key = (batch._initial_condition_leaves, tuple(batch.IC_COMPILER_OPTIONS.items()))
+    assert key in _cache._UNCACHED
+    for a, b, c in zip(jax.tree.leaves(cached), jax.tree.leaves(uncached),
+                       jax.tree.leaves(tail), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+        np.testing.assert_array_equal(np.asarray(a)[5:], np.asarray(c))
+
+
 def test_a_program_that_cannot_be_exported_is_not_traced_for_export_again(traces,
                                                                          monkeypatch):
     """A program jax.export refuses (here: an output of an unregistered pytree class) runs

@@ -184,3 +184,47 @@ def test_get_system_takes_a_name_or_a_system_and_names_what_it_got():
         get_system(3)
     with pytest.raises(ValueError, match="unknown system 'top'"):
         get_system("top")
+
+
+# ------------------------------------------------ parameters converted on the host
+
+
+_COMPILES: list[str] | None = None  # backend compiles while a test counts them
+
+
+def _count_compiles(event: str, duration: float, **kwargs) -> None:
+    if _COMPILES is not None and "backend_compile" in event:
+        _COMPILES.append(event)
+
+
+jax.monitoring.register_event_duration_secs_listener(_count_compiles)
+
+
+def test_building_a_model_compiles_nothing():
+    """Every model built with its default parameters, and with parameters given as Python
+    numbers, NumPy values and nested lists: no XLA program is compiled (a conversion with
+    ``jnp.asarray`` compiles one per shape and dtype, which every command would pay on its
+    way to its first trace), and the parameters are the float64 values given."""
+    global _COMPILES
+    from lgvi_jax.models import CarPendulum, FreeRigidBody, HeavyTop
+
+    J = [[0.3, 0.0, 0.0], [0.0, 0.5, 0.0], [0.0, 0.0, 0.7]]
+    _COMPILES = []
+    try:
+        models = [CarPendulum(), HeavyTop(), FreeRigidBody(), HarmonicOscillator(),
+                  CarPendulum(J=np.array(J, dtype=np.float32), m=2, M=np.float32(3.5),
+                              g=9.81, rho_c=(0, 0, 1)),
+                  HeavyTop(J=J, m=np.int64(2), g=np.float64(1.5)),
+                  HarmonicOscillator(m=2, k=np.float16(0.5))]
+        compiled = list(_COMPILES)
+    finally:
+        _COMPILES = None
+    assert compiled == []
+    car, top, osc = models[4], models[5], models[6]
+    np.testing.assert_array_equal(np.asarray(car.J), np.asarray(J, dtype=np.float32))
+    for value, expected in ((car.m, 2.0), (car.M, 3.5), (car.g, 9.81), (top.m, 2.0),
+                            (top.g, 1.5), (osc.m, 2.0), (osc.k, 0.5)):
+        assert isinstance(value, jax.Array) and value.dtype == jnp.float64
+        assert float(value) == expected
+    np.testing.assert_array_equal(np.asarray(car.rho_c), [0.0, 0.0, 1.0])
+    assert car.J.dtype == jnp.float64 and car.rho_c.dtype == jnp.float64

@@ -48,7 +48,13 @@ def _one_initial_condition(model, state0, eps, key):
     return type(state0)(q=new[:n], p=new[n:])
 
 
-@eqx.filter_jit
+#: XLA's options for the initial conditions' program: LLVM's optimisations off (level 0).
+#: It runs in milliseconds once per chunk, and a sweep compiles it while the rollout is
+#: traced, where its optimised compile (~0.56 s against ~0.26 s, on both cores) slowed that
+#: tracing (docs/engine.md, "the initial conditions compiled without optimisation").
+IC_COMPILER_OPTIONS = {"xla_backend_optimization_level": 0}
+
+
 def _initial_conditions(model, state0, eps, seed, indices):
     base = jax.random.key(seed)
     keys = jax.vmap(lambda i: jax.random.fold_in(base, i))(indices)
@@ -69,7 +75,8 @@ def initial_conditions(model, state0, n: int, perturb: float, seed: int,
     # The cached program returns the states' leaves: jax.export serialises only the
     # pytree nodes registered with it, and a state class is not (every run traced again).
     leaves = _cache.call("sweep.initial_conditions", _initial_condition_leaves, model,
-                         state0, np.float64(perturb), np.uint32(seed % 2**32), indices)
+                         state0, np.float64(perturb), np.uint32(seed % 2**32), indices,
+                         compiler_options=IC_COMPILER_OPTIONS)
     return jax.tree.unflatten(jax.tree.structure(state0), leaves)
 
 
@@ -462,7 +469,8 @@ def batch_arguments(model, method, states, dt, n_steps, *, sample_every=1, devic
     runner = _runner(devices, kind, block)
     on = devices[:1] if isinstance(runner, _Shares) else devices  # cut into shares there
     args = (_place(params, on, False), static, _place(states, on, True),
-            jnp.float64(dt), jnp.int32(n_steps), jnp.int32(sample_every))
+            # placed from the host: jnp.float64(dt) would compile a conversion program
+            *jax.device_put((np.float64(dt), np.int32(n_steps), np.int32(sample_every))))
     return runner, args
 
 
