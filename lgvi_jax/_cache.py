@@ -49,7 +49,7 @@ MIN_COMPILE_S = 0.2
 MAX_TRACES_SIZE = 256 * 1024**2
 
 _traces: Path | None = None  # set by enable(); None: call() runs the function as it is
-_loaded: dict[str, Callable] = {}  # key -> jitted call of the exported program
+_loaded: dict[tuple, Callable] = {}  # (key, compiler options) -> the compiled program
 
 
 def cache_dir() -> Path | None:
@@ -174,14 +174,7 @@ def program(name: str, fn: Callable, *args: Any,
     key = _key(name, static, leaves)
     if key is None:
         return _uncached(fn, compiler_options)
-    if key not in _loaded:
-        def flat(*flat_leaves):
-            return fn(*eqx.combine(jax.tree.unflatten(treedef, flat_leaves), static))
-
-        jitted = _load_or_export(key, flat, leaves)
-        # Compiled now, so that threads calling it at once do not each compile it.
-        _loaded[key] = _compiled(jitted, jitted.lower(*leaves).compile(compiler_options))
-    run = _loaded[key]
+    run = _load(key, fn, static, leaves, treedef, compiler_options)
 
     def loaded(*args):
         return run(*jax.tree.leaves(eqx.filter(args, eqx.is_array)))
@@ -200,7 +193,7 @@ def _uncached(fn: Callable, compiler_options: dict | None) -> Callable:
         return fn
     import equinox as eqx
 
-    key = (fn, tuple(sorted(compiler_options.items())))
+    key = (fn, _options(compiler_options))
     if key not in _UNCACHED:
         _UNCACHED[key] = eqx.filter_jit(fn, compiler_options=dict(compiler_options))
     return _UNCACHED[key]
@@ -213,13 +206,13 @@ def _is_input(x: Any) -> bool:
     return eqx.is_array(x) or isinstance(x, jax.ShapeDtypeStruct)
 
 
-def prepare(name: str, fn: Callable, *args: Any) -> None:
-    """Load (or trace and store) and compile the program of ``call(name, fn, *args)``
-    without running it, so that the later :func:`call` only runs it. ``args`` may hold
-    :class:`jax.ShapeDtypeStruct` leaves (with the sharding the real array will have) for
-    inputs not computed yet. Meant for a thread beside the main one's other work: XLA
-    reads a cached executable without the interpreter lock. Does nothing without the cache;
-    a failure only leaves the work to :func:`call`."""
+def prepare(name: str, fn: Callable, *args: Any, compiler_options: dict | None = None) -> None:
+    """Load (or trace and store) and compile the program of ``call(name, fn, *args,
+    compiler_options=...)`` without running it, so that the later :func:`call` only runs
+    it. ``args`` may hold :class:`jax.ShapeDtypeStruct` leaves (with the sharding the real
+    array will have) for inputs not computed yet. Meant for a thread beside the main one's
+    other work: XLA reads a cached executable without the interpreter lock. Does nothing
+    without the cache; a failure only leaves the work to :func:`call`."""
     if _traces is None:
         return
     import equinox as eqx
@@ -230,18 +223,36 @@ def prepare(name: str, fn: Callable, *args: Any) -> None:
     dynamic, static = eqx.partition(args, _is_input)
     leaves, treedef = jax.tree.flatten(dynamic)
     key = _key(name, static, leaves)
-    if key is None or key in _loaded:
+    if key is None:
         return
-
-    def flat(*flat_leaves):
-        return fn(*eqx.combine(jax.tree.unflatten(treedef, flat_leaves), static))
-
     try:
-        jitted = _load_or_export(key, flat, leaves)
-        compiled = jitted.lower(*leaves).compile()
+        _load(key, fn, static, leaves, treedef, compiler_options)
     except Exception:
         return
-    _loaded.setdefault(key, _compiled(jitted, compiled))
+
+
+def _options(compiler_options: dict | None) -> tuple:
+    """``compiler_options`` as part of a key (none: empty)."""
+    return tuple(sorted((compiler_options or {}).items()))
+
+
+def _load(key: str, fn: Callable, static, leaves: Sequence, treedef,
+          compiler_options: dict | None) -> Callable:
+    """The program ``key`` names, loaded (or traced and stored) and compiled with
+    ``compiler_options`` once (now, so that threads calling it at once do not each compile
+    it): a function of the flat inputs, kept in :data:`_loaded`."""
+    import equinox as eqx
+    import jax
+
+    loaded_key = (key, _options(compiler_options))
+    if loaded_key not in _loaded:
+        def flat(*flat_leaves):
+            return fn(*eqx.combine(jax.tree.unflatten(treedef, flat_leaves), static))
+
+        jitted = _load_or_export(key, flat, leaves)
+        compiled = jitted.lower(*leaves).compile(compiler_options)
+        _loaded.setdefault(loaded_key, _compiled(jitted, compiled))
+    return _loaded[loaded_key]
 
 
 def _compiled(jitted: Callable, compiled: Callable) -> Callable:
