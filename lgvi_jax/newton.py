@@ -764,8 +764,7 @@ _BATCHED_TRACE = contextvars.ContextVar("lgvi_jax.newton.batched_trace", default
 
 @contextlib.contextmanager
 def batched_trace():
-    """While tracing code that ``vmap`` will batch (a sweep's block, including the bodies of
-    its loops, which JAX traces unbatched and batches afterwards), the solves on scalars
+    """While tracing code that ``vmap`` batches (a sweep's block), the solves on scalars
     trace their unbatched form with a batch's programs. ``custom_vmap`` traces that form,
     which a batch never runs, before batching the solve: with a batch's programs, memoised,
     it builds no program of its own (the unrolled Jacobian, for ``jacobian_loop=

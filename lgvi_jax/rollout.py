@@ -111,7 +111,8 @@ def _step(model, method, dt, c: Carry) -> Carry:
 def advance(model, method, dt, carry: Carry, n_steps: int | jax.Array,
             observe: Callable[[Any, Carry], Any] | None = None, acc: Any = None, *,
             loop: str = "fori",
-            until: Callable[[Carry, Any], jax.Array] | None = None) -> tuple[Carry, Any]:
+            until: Callable[[Carry, Any], jax.Array] | None = None,
+            batch_axes: Any = None) -> tuple[Carry, Any]:
     """``n_steps`` guarded steps of ``method`` from ``carry``, with ``acc = observe(acc,
     carry)`` after each; returns ``(carry, acc)``.
 
@@ -119,12 +120,25 @@ def advance(model, method, dt, carry: Carry, n_steps: int | jax.Array,
     (``n_steps`` may be traced) or ``"while"`` (also stops before a step once ``until(carry,
     acc)`` is true).
 
+    ``batch_axes``: for a batch, the axes of ``(carry, acc)`` along which their leaves hold
+    its members (a ``vmap`` axes prefix; ``None`` for a leaf shared by all, such as a step
+    index every member has in common). The step and ``observe`` are then written for one
+    member and ``vmap``-ed inside the loop, so that the loop's body is traced once, batched;
+    ``vmap`` of the whole loop traces it unbatched and batches that trace twice (JAX's
+    rule for a loop: once to find its batched carries, once more to batch it). Not with
+    ``loop="while"``.
+
     Python's garbage collector is paused while the loop is traced (:mod:`lgvi_jax._gc`).
     """
     def body(c_acc):
         c, a = c_acc
         c = _step(model, method, dt, c)
         return c, (a if observe is None else observe(a, c))
+
+    if batch_axes is not None:
+        if loop == "while":
+            raise ValueError("advance: batch_axes is not supported with loop='while'")
+        body = jax.vmap(body, in_axes=(batch_axes,), out_axes=batch_axes)
 
     if loop == "scan":
         (carry, acc), _ = jax.lax.scan(lambda ca, _: (body(ca), None), (carry, acc), None,

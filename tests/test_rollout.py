@@ -3,6 +3,7 @@ equals the whole run, observers fold what simulate saves, ``until`` stops at the
 that meets it, a failure is kept with its step while later states are NaN, and Python's
 garbage collector is paused while a loop is traced."""
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -69,6 +70,49 @@ def test_an_observer_folds_what_simulate_saves_and_until_stops_at_the_first_hit(
     end, emax = rollout.advance(model, method, DT, carry, N, observe, jnp.zeros(()),
                                 loop="while", until=lambda c, a: a > threshold)
     assert int(end.k) == first and float(emax) == float(np.max(errors[: first + 1]))
+
+
+@pytest.mark.parametrize("loop", ["fori", "scan"])
+def test_a_batch_with_its_body_vmapped_in_the_loop_equals_vmap_of_the_loop(setup, loop):
+    """``batch_axes``: the loop's body ``vmap``-ed inside the loop (the step index shared)
+    gives what ``vmap`` of the whole loop gives, member by member, observer included."""
+    model, method, _ = setup
+    states = jax.vmap(lambda q, p: model.state(q0=q, p0=p))(
+        jnp.linspace(-0.8, 0.9, 5), jnp.linspace(0.7, -1.1, 5))
+
+    def prelude(s):
+        return rollout.start(model, method, s, DT), (jnp.zeros(()), model.energy(s))
+
+    def observe(acc, c):
+        emax, e0 = acc
+        return jnp.maximum(emax, jnp.abs(model.energy(c.state) - e0)), e0
+
+    def one(s):
+        carry, acc = prelude(s)
+        return rollout.advance(model, method, DT, carry, N, observe, acc, loop=loop)
+
+    ref_carry, ref_acc = jax.jit(jax.vmap(one))(states)
+
+    def batched(states):
+        carry, acc = jax.vmap(prelude)(states)
+        carry = eqx.tree_at(lambda c: c.k, carry, carry.k[0])
+        axes = jax.tree.map(lambda _: 0, (carry, acc))
+        axes = (eqx.tree_at(lambda c: c.k, axes[0], None), axes[1])
+        return rollout.advance(model, method, DT, carry, N, observe, acc, loop=loop,
+                               batch_axes=axes)
+
+    carry, acc = jax.jit(batched)(states)
+    assert carry.k.shape == () and int(carry.k) == N  # shared, not per member
+    np.testing.assert_array_equal(np.asarray(ref_carry.k), N)
+    # The same operations on the same values: equal to round-off (N steps of a few ulp of
+    # O(1) values; a fused multiply-add here or there is all another program may change).
+    for a, b in zip(jax.tree.leaves((eqx.tree_at(lambda c: c.k, carry, ref_carry.k), acc)),
+                    jax.tree.leaves((ref_carry, ref_acc)), strict=True):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12, atol=1e-14)
+    assert float(jnp.max(acc[0])) > 0  # the observer ran
+    with pytest.raises(ValueError, match="batch_axes"):
+        rollout.advance(model, method, DT, carry, N, observe, acc, loop="while",
+                        batch_axes=(None, None))
 
 
 def test_a_failure_keeps_its_step_and_the_later_states_are_nan(setup):

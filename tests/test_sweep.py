@@ -157,6 +157,40 @@ def test_a_batch_traces_no_unrolled_jacobian(car, monkeypatch):
     assert built
 
 
+def _conds_in_loops(jaxpr, in_loop=False) -> int:
+    """The ``cond`` equations inside ``while`` loops of ``jaxpr``, its sub-jaxprs included."""
+    from jax._src import core
+
+    count = 0
+    for eqn in jaxpr.eqns:
+        count += in_loop and eqn.primitive.name == "cond"
+        for sub in core.jaxprs_in_params(eqn.params):
+            count += _conds_in_loops(sub, in_loop or eqn.primitive.name == "while")
+    return count
+
+
+def test_a_batch_samples_its_metrics_in_a_branch(car, monkeypatch):
+    """In a batch the members share the step index (the loop's body is ``vmap``-ed inside
+    the loop, ``rollout.advance``'s ``batch_axes``), so the metrics' ``cond`` on it stays a
+    branch, taken every K-th step (``--sample-every``), not a selection that computes the
+    metrics at every step: the metrics' program has one more ``cond`` in its loops than the
+    final state's, in one block and in several."""
+    from lgvi_jax import sweep
+
+    monkeypatch.setattr(sweep.batch, "SCALAR_BLOCK", 4)  # a runner of its own: traced here
+    model, s0 = car
+    method = sweep.sweep_method("car-pendulum", "hamel")
+    states = initial_conditions(model, s0, 7, 0.05, seed=5)
+    for n in (3, 7):  # one block of 3; two blocks of 4
+        conds = {}
+        for kind in ("metrics", "final"):
+            fn, args = sweep.batch.batch_arguments(
+                model, method, _take(states, slice(0, n)), DT, 3, devices=jax.devices()[:1],
+                kind=kind)
+            conds[kind] = _conds_in_loops(fn.trace(*args).jaxpr.jaxpr)
+        assert conds["metrics"] == conds["final"] + 1, (n, conds)
+
+
 def test_accelerators_run_the_whole_share_as_one_block():
     """On a CPU a device's share runs in cache-sized blocks; on an accelerator the block is
     the whole share (a sequence of blocks would serialise a GPU: measured on an H200, the

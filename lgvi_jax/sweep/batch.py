@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import threading
 from collections.abc import Callable, Sequence
-from typing import Any
+from typing import Any, NamedTuple
 
 import equinox as eqx
 import jax
@@ -97,107 +97,120 @@ def _diagnostics(model, state):
     return out
 
 
-def _per_member(tree):
-    """``tree`` itself; under ``vmap``, with every leaf batched (unbatched ones broadcast).
-    For a loop's initial carry: JAX batches a loop by searching for the carries that become
-    batched, retracing the body (with every Newton solve in it) at each search step; a carry
-    batched from the start settles at once."""
+class _Parts(NamedTuple):
+    """A batched rollout written for one trajectory: ``prelude(state0) -> (carry, acc)``,
+    the loop's ``observe(acc, carry) -> acc`` (or ``None``) and ``finish(end, acc) -> out``.
+    :func:`_run_one` runs it for one trajectory, :func:`_run_block` for a block (the loop's
+    body ``vmap``-ed inside the loop, ``rollout.advance``'s ``batch_axes``)."""
 
-    @jax.custom_batching.custom_vmap
-    def ident(tree):
-        return tree
-
-    @ident.def_vmap
-    def _rule(axis_size, in_batched, tree):
-        (batched,) = in_batched
-        out = jax.tree.map(
-            lambda x, b: x if b else jnp.broadcast_to(x, (axis_size, *jnp.shape(x))),
-            tree, batched)
-        return out, jax.tree.map(lambda _: True, out)
-
-    return ident(tree)
+    prelude: Callable
+    observe: Callable | None
+    finish: Callable
 
 
-def _start(model, method, state0, dt, acc=None) -> tuple[rollout.Carry, Any]:
-    """The rollout's initial carry and the observer's accumulator, every leaf per member
-    (one ``_per_member`` for both: a batch of only unbatched leaves, such as metrics that
-    start as constants, would not reach its batching rule) except the step index, which
-    stays shared: the metrics' ``cond`` on it then stays a branch under ``vmap`` (metrics
-    every K steps cost 1/K), where a per-member index would turn it into a selection."""
-    carry = rollout.start(model, method, state0, dt)
-    batched, acc = _per_member((carry, acc))
-    return eqx.tree_at(lambda c: c.k, batched, carry.k), acc
-
-
-def _sweep_one(model, method, state0, dt, n_steps, sample_every):
-    """One trajectory of ``n_steps`` (a run-time value) with running metrics."""
+def _sweep_parts(model, method, example, dt, n_steps, sample_every) -> _Parts:
+    """One trajectory of ``n_steps`` (a run-time value) with running metrics; ``example``:
+    a state of its shapes (arrays or :class:`jax.ShapeDtypeStruct`)."""
     # On scalars (scalarize.on_scalars): the invariants of a model derived by autodiff (the
     # inverse Legendre map through the kinetic-energy Hessian) are dozens of small array
     # operations that in a loop cost more than the step (docs/engine.md).
-    on_scalars_ = on_scalars(_diagnostics, model, state0)
+    on_scalars_ = on_scalars(_diagnostics, model, example)
 
     def diagnostics(state):
         return on_scalars_(model, state)
 
-    inv0 = diagnostics(state0)
-    e0 = inv0["energy"]
-    scale = jnp.where(e0 != 0, jnp.abs(e0), 1.0)
-    names = [k for k in inv0 if k not in ("energy", "orthogonality_error")]
-    on_group = hasattr(state0, "R")
-    ftype = e0.dtype
-
-    def measure(state):
+    def measure(state, context):
+        inv0, scale = context
         inv = diagnostics(state)
-        out = {"energy_error": jnp.abs(inv["energy"] - e0) / scale}
-        for k in names:
-            out[f"{k}_drift"] = jnp.max(jnp.abs(inv[k] - inv0[k]))
-        if on_group:
+        out = {"energy_error": jnp.abs(inv["energy"] - inv0["energy"]) / scale}
+        for k, v in inv.items():
+            if k not in ("energy", "orthogonality_error"):
+                out[f"{k}_drift"] = jnp.max(jnp.abs(v - inv0[k]))
+        if "orthogonality_error" in inv:
             out["orthogonality_error"] = inv["orthogonality_error"]
         return out
 
-    zero_metrics = jax.tree.map(jnp.zeros_like, measure(state0))
-    # The maxima start at NaN (fmax ignores it): a trajectory that fails before its first
-    # sample records NaN, not a misleading 0.
-    nan_metrics = jax.tree.map(lambda x: jnp.full_like(x, jnp.nan), zero_metrics)
+    def prelude(state0):
+        inv0 = diagnostics(state0)
+        e0 = inv0["energy"]
+        context = (inv0, jnp.where(e0 != 0, jnp.abs(e0), 1.0))
+        zero_metrics = jax.tree.map(jnp.zeros_like, measure(state0, context))
+        # The maxima start at NaN (fmax ignores it): a trajectory that fails before its
+        # first sample records NaN, not a misleading 0.
+        nan_metrics = jax.tree.map(lambda x: jnp.full_like(x, jnp.nan), zero_metrics)
+        return (rollout.start(model, method, state0, dt),
+                (nan_metrics, zero_metrics, context))
 
     def observe(acc, c):
         sample = (c.k % sample_every == 0) | (c.k == n_steps)
+        context = acc[2]
 
         def update(args):
             maxima, last = args
-            m = measure(c.state)
+            m = measure(c.state, context)
             maxima = jax.tree.map(lambda a, b: jnp.where(c.ok, jnp.fmax(a, b), a), maxima, m)
             last = jax.tree.map(lambda b: jnp.where(c.ok, b, jnp.nan), m)
             return maxima, last
 
-        return jax.lax.cond(sample, update, lambda a: a, acc)
+        return (*jax.lax.cond(sample, update, lambda a: a, acc[:2]), context)
 
-    carry, acc = _start(model, method, state0, dt, (nan_metrics, zero_metrics))
-    end, (maxima, last) = rollout.advance(model, method, dt, carry, n_steps, observe, acc)
-    steps_done = jnp.where(end.failed_step >= 0, end.failed_step + 1, n_steps)
-    out = {
-        "energy_error_max": maxima["energy_error"],
-        "energy_error_final": last["energy_error"],
-    }
-    for k in names:
-        out[f"{k}_drift_max"] = maxima[f"{k}_drift"]
-    if on_group:
-        out["orthogonality_error_max"] = maxima["orthogonality_error"]
-    out["newton_mean"] = end.newton_steps / jnp.maximum(steps_done, 1).astype(ftype)
-    out["newton_max"] = end.newton_steps_max
-    out["result"] = end.result
-    out["failed_step"] = end.failed_step
-    return out
+    def finish(end, acc):
+        maxima, last, context = acc
+        steps_done = jnp.where(end.failed_step >= 0, end.failed_step + 1, n_steps)
+        out = {
+            "energy_error_max": maxima["energy_error"],
+            "energy_error_final": last["energy_error"],
+        }
+        for k, v in maxima.items():  # the invariants' drifts, the orthogonality error
+            if k != "energy_error":
+                out[f"{k}_max"] = v
+        ftype = context[1].dtype
+        out["newton_mean"] = end.newton_steps / jnp.maximum(steps_done, 1).astype(ftype)
+        out["newton_max"] = end.newton_steps_max
+        out["result"] = end.result
+        out["failed_step"] = end.failed_step
+        return out
+
+    return _Parts(prelude, observe, finish)
 
 
-def _final_one(model, method, state0, dt, n_steps, sample_every):
+def _final_parts(model, method, example, dt, n_steps, sample_every) -> _Parts:
     """One trajectory, no metrics: the final state and the result code (benchmarks)."""
-    del sample_every
-    end, _ = rollout.advance(model, method, dt, _start(model, method, state0, dt)[0], n_steps)
-    return {"state": end.state, "result": end.result, "failed_step": end.failed_step}
+    del example, n_steps, sample_every
+
+    def finish(end, acc):
+        return {"state": end.state, "result": end.result, "failed_step": end.failed_step}
+
+    return _Parts(lambda state0: (rollout.start(model, method, state0, dt), None), None,
+                  finish)
 
 
-_ONE = {"metrics": _sweep_one, "final": _final_one}
+_PARTS = {"metrics": _sweep_parts, "final": _final_parts}
+
+
+def _run_one(model, method, parts: _Parts, state0, dt, n_steps):
+    """``parts`` for one trajectory."""
+    carry, acc = parts.prelude(state0)
+    end, acc = rollout.advance(model, method, dt, carry, n_steps, parts.observe, acc)
+    return parts.finish(end, acc)
+
+
+def _run_block(model, method, parts: _Parts, states0, dt, n_steps):
+    """``parts`` for a block of trajectories (leading axis), as ``vmap`` of
+    :func:`_run_one` computes them, with the loop outside the ``vmap`` (its body traced
+    once, batched: ``rollout.advance``'s ``batch_axes``). Every leaf of the carry is per
+    member except the step index, which stays shared: the metrics' ``cond`` on it then
+    stays a branch (metrics every K steps cost 1/K), where a per-member index would turn it
+    into a selection."""
+    carry, acc = jax.vmap(parts.prelude)(states0)
+    carry = eqx.tree_at(lambda c: c.k, carry, carry.k[0])  # the same for all members
+    axes = jax.tree.map(lambda _: 0, (carry, acc))
+    axes = (eqx.tree_at(lambda c: c.k, axes[0], None), axes[1])
+    end, acc = rollout.advance(model, method, dt, carry, n_steps, parts.observe, acc,
+                               batch_axes=axes)
+    return jax.vmap(parts.finish, in_axes=axes)(end, acc)
+
+
 _RUNNERS: dict[Any, Callable] = {}
 
 #: The most trajectories one device integrates as one vectorised batch; a larger share runs
@@ -218,18 +231,19 @@ SCALAR_BLOCK = 32
 MAX_SHARES = 32
 
 
-def _vmap_in_blocks(f, states, block: int):
-    """``vmap(f)(states)`` over the leading axis, as a sequence of at most ``block``-sized
-    vectorised blocks: ``ceil(B / block)`` blocks of equal size, the last padded with copies
-    of the first state (computed and dropped), so that the step is compiled once."""
+def _in_blocks(one, block_fn, states, block: int):
+    """``vmap(one)(states)`` over the leading axis, computed by ``block_fn`` (the same
+    function of a block of states) as a sequence of at most ``block``-sized vectorised
+    blocks: ``ceil(B / block)`` blocks of equal size, the last padded with copies of the
+    first state (computed and dropped), so that the step is compiled once."""
     batch = jax.tree.leaves(states)[0].shape[0]
     if batch == 1:  # one trajectory: the unbatched program (compiles faster than a vmap
         # of one, runs as fast)
-        out = f(jax.tree.map(lambda x: x[0], states))
+        out = one(jax.tree.map(lambda x: x[0], states))
         return jax.tree.map(lambda y: y[None], out)
     if batch <= block:
         with batched_trace():
-            return jax.vmap(f)(states)
+            return block_fn(states)
     n_blocks = -(-batch // block)
     size = -(-batch // n_blocks)
     pad = n_blocks * size - batch
@@ -244,7 +258,7 @@ def _vmap_in_blocks(f, states, block: int):
         j = _opaque_index(i, n_blocks)
         x = jax.tree.map(lambda a: jax.lax.dynamic_index_in_dim(a, j, keepdims=False), xs)
         with batched_trace():
-            return None, jax.vmap(f)(x)
+            return None, block_fn(x)
 
     _, out = jax.lax.scan(block_of, None, jnp.arange(n_blocks, dtype=jnp.int32))
     return jax.tree.map(lambda y: y.reshape(n_blocks * size, *y.shape[2:])[:batch], out)
@@ -271,12 +285,15 @@ def _runner(devices: tuple, kind: str = "metrics", block: int = BLOCK) -> Callab
     if 1 < len(devices) <= MAX_SHARES and all(d.platform == "cpu" for d in devices):
         _RUNNERS[key] = _Shares(_runner(devices[:1], kind, block), len(devices), devices[0])
         return _RUNNERS[key]
-    one = _ONE[kind]
+    make_parts = _PARTS[kind]
 
     def batched(params, static, states, dt, n_steps, sample_every):
         model, method = eqx.combine(params, static)
-        return _vmap_in_blocks(lambda s: one(model, method, s, dt, n_steps, sample_every),
-                               states, block)
+        example = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape[1:], x.dtype), states)
+        parts = make_parts(model, method, example, dt, n_steps, sample_every)
+        return _in_blocks(lambda s: _run_one(model, method, parts, s, dt, n_steps),
+                          lambda s: _run_block(model, method, parts, s, dt, n_steps),
+                          states, block)
 
     if len(devices) == 1:
         fn = jax.jit(batched, static_argnums=1)
