@@ -205,7 +205,7 @@ def _eval(w0, w1, w2, R0, K0, K1, K2, px, py, h, prm, method):
 
 
 # ---------------------------------------------------------------------------------------
-# Per-step diagnostics: what ``lgvi-jax sweep`` records (lgvi_jax.sweep.batch._sweep_one)
+# Per-step diagnostics: what ``lgvi-jax sweep`` records (lgvi_jax.sweep.batch._sweep_parts)
 # ---------------------------------------------------------------------------------------
 
 #: The per-trajectory fields of :func:`metrics_of_states` and of the rollouts with

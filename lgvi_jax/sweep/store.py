@@ -64,7 +64,8 @@ _CORE_FIELDS = ("index", "energy_error_max", "energy_error_final", "newton_mean"
 
 
 def _expected_fields(model, state0) -> set[str]:
-    """The fields a chunk of this model holds (the keys :func:`_sweep_one` returns)."""
+    """The fields a chunk of this model holds (the keys the ``finish`` of
+    :func:`~lgvi_jax.sweep.batch._sweep_parts` returns)."""
     names = {f"{k}_drift_max" for k in model.invariants(state0) if k != "energy"}
     if hasattr(state0, "R"):
         names.add("orthogonality_error_max")
