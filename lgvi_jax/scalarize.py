@@ -77,7 +77,9 @@ def split(x) -> np.ndarray:
         out[()] = x
         return out
     flat = x.reshape(-1)
-    items = [flat[i] for i in range(flat.shape[0])]
+    # lax.slice, not flat[i]: the same operations, bound directly rather than through
+    # jax.numpy's indexing (a jitted function per entry; tracing a batch splits hundreds).
+    items = [lax.squeeze(lax.slice(flat, (i,), (i + 1,)), (0,)) for i in range(flat.shape[0])]
     for i, idx in enumerate(np.ndindex(x.shape)):
         out[idx] = items[i]
     return out
@@ -612,7 +614,7 @@ class ScalarFunction:
     def _output(self, index: int, value, one):
         """Flat output ``index``: its constant if it is one, materialised when batched."""
         value = self.const_outputs.get(index, value)
-        return value if one is None or _is_const(value) else value / one
+        return value if one is None or _is_const(value) else _over(value, one)
 
     def on_unit_vectors(self, *scalar_args,
                         batched: bool | None = None) -> list[list[jax.Array]]:
@@ -808,7 +810,7 @@ _COS_X = tuple((-1.0) ** n / math.factorial(2 * n) for n in range(9))
 def _horner(x, coeffs):
     out = coeffs[-1]
     for c in reversed(coeffs[:-1]):
-        out = out * x + c
+        out = lax.add(lax.mul(out, x), c)
     return out
 
 
@@ -822,13 +824,16 @@ def sin_cos(t):
     way: XLA's CPU sine costs some 30 multiply-adds per element (docs/engine.md), and
     the closed forms of :mod:`lgvi_jax.so3` are evaluated even where their Taylor branch
     is selected."""
-    k = lax.round(t * _INV_TWO_PI, lax.RoundingMethod.TO_NEAREST_EVEN)
-    r = ((t - k * _TWO_PI_1) - k * _TWO_PI_2) - k * _TWO_PI_3
-    x = 0.25 * r
-    x2 = x * x
-    s1, c1 = x * _horner(x2, _SIN_X), _horner(x2, _COS_X)
-    s2, c2 = 2.0 * s1 * c1, (c1 - s1) * (c1 + s1)
-    return 2.0 * s2 * c2, (c2 - s2) * (c2 + s2)
+    # lax operations rather than Python's operators, which go through jax.numpy (a jitted
+    # function per operation): the same operations, traced in a fraction of the time.
+    mul, add, sub = lax.mul, lax.add, lax.sub
+    k = lax.round(mul(t, _INV_TWO_PI), lax.RoundingMethod.TO_NEAREST_EVEN)
+    r = sub(sub(sub(t, mul(k, _TWO_PI_1)), mul(k, _TWO_PI_2)), mul(k, _TWO_PI_3))
+    x = mul(0.25, r)
+    x2 = mul(x, x)
+    s1, c1 = mul(x, _horner(x2, _SIN_X)), _horner(x2, _COS_X)
+    s2, c2 = mul(mul(2.0, s1), c1), mul(sub(c1, s1), add(c1, s1))
+    return mul(mul(2.0, s2), c2), mul(sub(c2, s2), add(c2, s2))
 
 
 def _replay(closed, flat, keep, one=None):
@@ -869,8 +874,14 @@ def _replay_eqns(eqns, env: dict, keep, one) -> None:
             outs = outs if eqn.primitive.multiple_results else [outs]
         for var, val in zip(eqn.outvars, outs, strict=True):
             if one is not None and var in keep and not _is_const(val):
-                val = val / one
+                val = _over(val, one)
             env[var] = val
+
+
+def _over(value, one):
+    """``value / one`` (materialisation, :func:`_runtime_one`), bound directly when the
+    dtypes agree."""
+    return lax.div(value, one) if value.dtype == one.dtype else value / one
 
 
 def _switch(index, branches, dtypes):
