@@ -35,8 +35,9 @@ Four parts (``lgvi-jax bench --out DIR``; writes ``bench.json`` and ``bench.md``
 4. **A sweep end to end** (``--parts sweep``, not in the default parts: it spawns fresh
    processes for a few minutes). ``lgvi-jax sweep SYSTEM --method hamel --dt 5e-3
    --t-final T --n BATCH --perturb 0.01 --seed 0`` for each system, a fresh process each:
-   once *cold* (an empty cache folder) and :data:`SWEEP_WARM_RUNS` times *warm* (the same
-   folder: compiled and traced programs reused), wall clock of the whole command; beside
+   :data:`SWEEP_COLD_RUNS` times *cold* (each with an empty cache folder; the median is
+   reported) and :data:`SWEEP_WARM_RUNS` times *warm* (the last cold run's folder:
+   compiled and traced programs reused), wall clock of the whole command; beside
    it, for the car-pendulum, the Numba Hamel baseline's compiled batched run of the same
    work with the same per-step diagnostics on all cores (the issue's yardstick).
 5. **Memory of long runs.** ``lgvi-jax simulate`` for 10^6 steps with ``--save-every
@@ -96,6 +97,10 @@ PARTS = ("throughput", "gradient", "fit", "sweep")
 DEFAULT_PARTS = ("throughput", "gradient", "fit")
 #: Warm repetitions of the end-to-end sweep (``sweep`` part).
 SWEEP_WARM_RUNS = 3
+#: Cold runs of the end-to-end sweep, each with an empty cache folder; the cold time
+#: reported is their median (each one in bench.json): one cold run's wall clock moved by
+#: 4.7–6.4 s between runs of the same code on one host (docs/benchmarks.md, History).
+SWEEP_COLD_RUNS = 3
 #: ``--quick``: a smoke test of every part but the fit (whose Jacobian program is slow to
 #: compile), on fewer methods, the default engines only, and the gradient on arrays only (the
 #: scalar engine's gradient is the slowest program to compile).
@@ -402,23 +407,28 @@ def _sweep_end_to_end(systems, steps: int, batch: int, nb, log) -> list[dict]:
     rows = []
     for system in systems:
         with tempfile.TemporaryDirectory() as tmp:
-            env = {**os.environ, "LGVI_JAX_CACHE_DIR": str(Path(tmp) / "cache")}
+            # The cold runs each in an empty cache folder; the warm runs in the last one's.
+            caches = [Path(tmp) / f"cache{k}" for k in range(SWEEP_COLD_RUNS)]
+            caches += [caches[-1]] * SWEEP_WARM_RUNS
             walls = []
-            for k in range(1 + SWEEP_WARM_RUNS):
+            for k, cache in enumerate(caches):
                 args = [sys.executable, "-m", "lgvi_jax.cli", "sweep", system, "--method",
                         "hamel", "--dt", str(DT), "--t-final", f"{steps * DT:g}", "--n",
                         str(batch), "--perturb", str(PERTURB), "--seed", str(SEED),
                         "--out", str(Path(tmp) / f"out{k}"), "--json"]
                 start = time.perf_counter()
-                proc = subprocess.run(args, capture_output=True, text=True, env=env,
+                proc = subprocess.run(args, capture_output=True, text=True,
+                                      env={**os.environ, "LGVI_JAX_CACHE_DIR": str(cache)},
                                       check=False)
                 walls.append(time.perf_counter() - start)
                 if proc.returncode != 0:
                     raise RuntimeError(f"sweep {system} failed: {proc.stderr[-2000:]}")
             summary = json.loads((Path(tmp) / "out0" / "summary.json").read_text())
+        cold = walls[:SWEEP_COLD_RUNS]
         row = {"system": system, "method": "hamel", "n": batch, "steps": steps,
                "engine": engine_name(sweep_method(system, "hamel")),
-               "cold_s": walls[0], "warm_s": walls[1:],
+               "cold_s": float(np.median(cold)), "cold_s_each": cold,
+               "warm_s": walls[SWEEP_COLD_RUNS:],
                "energy_error_max": summary["rows"][0]["energy_error_max_max"],
                "numba_run_s": None}
         if nb is not None and system == "car-pendulum":
@@ -428,8 +438,9 @@ def _sweep_end_to_end(systems, steps: int, batch: int, nb, log) -> list[dict]:
             row["numba_run_s"], _, _ = _timed(
                 lambda a=arrays, p=params: nb.sweep_metrics("hamel", *a, DT, steps, p), 2)
         rows.append(row)
-        log(f"  {system}: cold {walls[0]:.2f} s, warm "
-            + ", ".join(f"{w:.2f}" for w in walls[1:]) + " s"
+        log(f"  {system}: cold {row['cold_s']:.2f} s (median of "
+            + ", ".join(f"{w:.2f}" for w in cold) + "), warm "
+            + ", ".join(f"{w:.2f}" for w in row["warm_s"]) + " s"
             + (f"; Numba's compiled run {row['numba_run_s']:.2f} s" if row["numba_run_s"]
                else ""))
     return rows
@@ -681,7 +692,8 @@ def _markdown(r: dict) -> str:
             f"`lgvi-jax sweep SYSTEM --method hamel --dt {r['dt']:g} --t-final "
             f"{r['steps'] * r['dt']:g} --n {r['batch']} --perturb {PERTURB:g} --seed {SEED}`, "
             "metrics every step, a fresh process each: *cold* with an empty cache folder "
-            "(`LGVI_JAX_CACHE_DIR`), *warm* the same command again (compiled and traced "
+            f"(`LGVI_JAX_CACHE_DIR`; the median of {SWEEP_COLD_RUNS} runs, each in "
+            "bench.json), *warm* the same command again (compiled and traced "
             "programs reused). Numba: the Hamel baseline's compiled batched run of the same "
             "work with the same per-step diagnostics, all cores (run time only, after its "
             "compilation). Ratio = Numba's run / our wall clock (≥ 1: we are faster).",
