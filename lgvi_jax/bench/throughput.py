@@ -427,7 +427,7 @@ def _sweep_end_to_end(systems, steps: int, batch: int, nb, log) -> list[dict]:
         cold = walls[:SWEEP_COLD_RUNS]
         row = {"system": system, "method": "hamel", "n": batch, "steps": steps,
                "engine": engine_name(sweep_method(system, "hamel")),
-               "cold_s": float(np.median(cold)), "cold_s_each": cold,
+               "cold_s": statistics.median(cold), "cold_s_each": cold,
                "warm_s": walls[SWEEP_COLD_RUNS:],
                "energy_error_max": summary["rows"][0]["energy_error_max_max"],
                "numba_run_s": None}
