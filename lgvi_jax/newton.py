@@ -739,24 +739,32 @@ def _memo(kind: str, fn, y0, args, build):
     return per_fn[key]
 
 
-def _scalar_jacobian(fn, y0, args,
-                     mode: JacobianMode | str = JacobianMode.AUTO) -> sc.ScalarFunction:
+def _scalar_jacobian(fn, y0, args, mode: JacobianMode | str = JacobianMode.AUTO,
+                     residual: bool = False) -> sc.ScalarFunction:
     """The Jacobian of ``fn`` in ``y`` as a scalar program: forward mode (one tangent per
     unknown), reverse mode (one cotangent per residual) or, with ``mode="auto"``, whichever
-    leaves fewer operations after folding and merging. The same matrix up to the order of
-    the floating-point sums; which mode is smaller depends on the model and the method (the
-    car-pendulum's ``lgvi``: reverse 953 against forward 1355 operations; ``hamel``:
-    forward 1018 against 1277)."""
-    def build():
-        if mode == JacobianMode.FORWARD:
-            return sc.ScalarFunction(jax.jacfwd(fn), y0, args)
-        if mode == JacobianMode.REVERSE:
-            return sc.ScalarFunction(jax.jacrev(fn), y0, args)
-        forward = sc.ScalarFunction(jax.jacfwd(fn), y0, args)
-        reverse = sc.ScalarFunction(jax.jacrev(fn), y0, args)
-        return reverse if reverse.size < forward.size else forward
+    leaves fewer operations after folding and merging (the car-pendulum's ``lgvi``: reverse
+    953 against forward 1355 operations; ``hamel``: forward 1018 against 1277). The same
+    matrix up to the order of the floating-point sums.
 
-    return _memo(f"jacobian:{mode}", fn, y0, args, build)
+    With ``residual``, where the mode is reverse, the program returns ``(J, fn)``: the
+    reverse pass runs the primal to its end, so the residual costs little more (``lgvi``:
+    1074 operations for both against 953 + 360), and the first update after each Jacobian
+    needs no residual of its own (one trajectory 4–8 % faster, docs/engine.md). In forward
+    mode, where sharing measured no faster, the Jacobian alone; ``out_shape`` tells which."""
+    if mode == JacobianMode.AUTO:
+        forward = _scalar_jacobian(fn, y0, args, JacobianMode.FORWARD)
+        reverse = _scalar_jacobian(fn, y0, args, JacobianMode.REVERSE)
+        if forward.size <= reverse.size:
+            return forward
+        if not residual:
+            return reverse
+        mode = JacobianMode.REVERSE
+    if mode == JacobianMode.REVERSE and residual:
+        return _memo("jacobian-residual", fn, y0, args, lambda: sc.ScalarFunction(
+            lambda y, a: (jax.jacrev(fn)(y, a), fn(y, a)), y0, args))
+    jac = jax.jacrev if mode == JacobianMode.REVERSE else jax.jacfwd
+    return _memo(f"jacobian:{mode}", fn, y0, args, lambda: sc.ScalarFunction(jac(fn), y0, args))
 
 
 _BATCHED_TRACE = contextvars.ContextVar("lgvi_jax.newton.batched_trace", default=False)
@@ -780,10 +788,11 @@ def batched_trace():
 def _scalar_programs(fn, y0, args, solver: Newton, lanes: int | None):
     """The residual's scalar program and the chord matrix's, ``(residual, jacobian)``:
     ``jacobian(y, args)`` takes scalars (:func:`~lgvi_jax.scalarize.split`) and returns
-    the matrix's rows, unrolled (``solver.scalar_jacobian``: :func:`_scalar_jacobian`) or
-    by blocks of columns in loops (``solver.jacobian_loop``: :func:`_scalar_tangent`) for
-    a batch of ``lanes`` solves or one (``None``; a batch's within :func:`batched_trace`).
-    Each program is traced once per solve."""
+    the matrix's rows and the residual at ``y``, unrolled (``solver.scalar_jacobian``:
+    :func:`_scalar_jacobian`, the residual from the same program) or by blocks of columns
+    in loops (``solver.jacobian_loop``: :func:`_scalar_tangent`; the residual ``None``)
+    for a batch of ``lanes`` solves or one (``None``; a batch's within
+    :func:`batched_trace`). Each program is traced once per solve."""
     residual = _memo("residual", fn, y0, args, lambda: sc.ScalarFunction(fn, y0, args))
     batched = lanes is not None or _BATCHED_TRACE.get()
     # "batched" on a CPU only: there a batch's compile is LLVM compiling the rollout as one
@@ -798,12 +807,14 @@ def _scalar_programs(fn, y0, args, solver: Newton, lanes: int | None):
         def jacobian(y, a):
             blocks = tangent.on_unit_vectors(y, a, batched=True)  # [block][row][column]
             return [[column for rows in blocks for column in rows[r]]
-                    for r in range(len(blocks[0]))]
+                    for r in range(len(blocks[0]))], None
     else:
-        jac_fn = _scalar_jacobian(fn, y0, args, solver.scalar_jacobian)
+        jac_fn = _scalar_jacobian(fn, y0, args, solver.scalar_jacobian, residual=True)
+        with_residual = isinstance(jac_fn.out_shape, tuple)
 
         def jacobian(y, a):
-            return _rows(jac_fn(y, a, batched=True))
+            out = jac_fn(y, a, batched=True)
+            return (_rows(out[0]), list(out[1])) if with_residual else (_rows(out), None)
 
     return residual, jacobian
 
@@ -903,8 +914,9 @@ def _iterate_scalar(programs, y0, args, solver: Newton, lanes: int | None = None
             out[i] = v
         return out
 
-    def update(y, J_fac, k, prev, newton, cap, k_phase):
-        F = list(res_fn(as_obj(y), args_s, batched=True))
+    def update(y, J_fac, k, prev, newton, cap, k_phase, F=None):
+        if F is None:
+            F = list(res_fn(as_obj(y), args_s, batched=True))
         delta = [sc.neg(d) for d in _scalar_block_solve(J_fac, F)]
         res = _scalar_max([sc.absolute(f) for f in F], zero)
         finite = sc.isfinite(res)
@@ -928,17 +940,20 @@ def _iterate_scalar(programs, y0, args, solver: Newton, lanes: int | None = None
     def outer_body(carry):
         y, k, _, _, newton, cap, refreshes, res0 = carry
         k_phase = k
-        J_fac = _scalar_block_factor(jacobian(as_obj(y), args_s))
+        J, F = jacobian(as_obj(y), args_s)
+        J_fac = _scalar_block_factor(J)
 
-        def inner_body(c):
+        def inner_body(c, F=None):
             y, k, _, _, prev, _, r0 = c
-            out = update(list(y), J_fac, k, prev, newton, cap, k_phase)
+            out = update(list(y), J_fac, k, prev, newton, cap, k_phase, F)
             return (*out, jnp.where(out[1] == 1, out[3], r0))  # the residual at the guess
 
+        init = (y, k, full(-1, jnp.int32), full(jnp.inf, dtype), full(jnp.inf, dtype),
+                full(False, jnp.bool_), res0)
+        if F is not None:  # the first update (it always runs) from the Jacobian's residual
+            init = inner_body(init, F)
         y, k, result, res, _, _, res0 = _while_lanes(
-            lambda c: (c[2] < 0) & ~c[5], inner_body,
-            (y, k, full(-1, jnp.int32), full(jnp.inf, dtype), full(jnp.inf, dtype),
-             full(False, jnp.bool_), res0), lanes)
+            lambda c: (c[2] < 0) & ~c[5], inner_body, init, lanes)
         fallback, newton, cap, refreshes = _chord_phase_end(
             newton, result, refreshes, res, res0, k, cap, solver.max_steps)
         y = tuple(jnp.where(fallback, a, b) for a, b in zip(y0_s, y, strict=True))
