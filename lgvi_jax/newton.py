@@ -943,9 +943,9 @@ def _iterate_scalar(programs, y0, args, solver: Newton, lanes: int | None = None
         J, F = jacobian(as_obj(y), args_s)
         J_fac = _scalar_block_factor(J)
 
-        def inner_body(c, F=None):
+        def inner_body(c, F_at_y=None):
             y, k, _, _, prev, _, r0 = c
-            out = update(list(y), J_fac, k, prev, newton, cap, k_phase, F)
+            out = update(list(y), J_fac, k, prev, newton, cap, k_phase, F_at_y)
             return (*out, jnp.where(out[1] == 1, out[3], r0))  # the residual at the guess
 
         init = (y, k, full(-1, jnp.int32), full(jnp.inf, dtype), full(jnp.inf, dtype),
