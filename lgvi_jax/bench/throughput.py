@@ -489,7 +489,8 @@ def _environment() -> dict:
     devices = jax.devices()
     return {"jax": jax.__version__, "python": platform.python_version(),
             "machine": platform.machine(), "cpu": _xla.cpu_model(), "cpu_count": os.cpu_count(),
-            "avx512": _xla._wide_vectors(), "xla_settings": list(_xla.added()),
+            "avx512": _xla._wide_vectors(), "avx2": "avx2" in _xla._cpu_flags(),
+            "xla_settings": list(_xla.added()),
             "devices": [str(d) for d in devices], "platform": devices[0].platform,
             "device_kind": devices[0].device_kind}
 
@@ -590,7 +591,8 @@ def _markdown(r: dict) -> str:
         "",
         f"{len(env['devices'])} {env['platform']} device(s) ({env['device_kind']}), "
         f"{env['cpu_count']} CPU cores ({env.get('cpu', 'unknown')}"
-        + (", AVX-512" if env.get("avx512") else "") + f"), jax {env['jax']}"
+        + (", AVX-512" if env.get("avx512") else ", AVX2" if env.get("avx2") else "")
+        + f"), jax {env['jax']}"
         + (f", Numba {numba['version']} with {numba['threads']} threads" if numba
            else ", no Numba baseline") + ". Best of at least "
         f"{r['repeats']} runs after compilation and {r.get('min_time_s', 0.0):g} s of runs "
